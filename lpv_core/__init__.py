@@ -1,0 +1,10 @@
+"""LPV GI core: Cascaded Light Propagation Volumes over numpy arrays (and moderngl).
+
+Never imports bpy, so it runs in tests, scripts and the worker process alike.
+Kaplanyan & Dachsbacher, "Cascaded Light Propagation Volumes for Real-Time Indirect
+Illumination", I3D 2010 [KD10].
+"""
+
+from . import scene  # noqa: F401
+
+__all__ = ["scene"]

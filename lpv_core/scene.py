@@ -1,0 +1,290 @@
+"""Core scene model: triangle arrays, materials, lights, camera and GI settings.
+
+Everything is plain numpy in Blender's units (metres, W for point/spot/area power, W/m^2 for
+sun irradiance, scene-linear colour). The add-on fills it from a depsgraph; tests and the demo
+build it directly. Nothing here imports bpy.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+import numpy as np
+
+LIGHT_TYPES = ("POINT", "SPOT", "SUN", "AREA")
+
+
+@dataclass
+class Material:
+    """A diffuse material as LPV sees it (albedo; GI bleed colour and flags come later)."""
+
+    name: str
+    albedo: np.ndarray = field(default_factory=lambda: np.full(3, 0.8, np.float32))
+    # Colour and strength this material bounces into GI (None: use albedo).
+    bleed_color: np.ndarray | None = None
+    bleed_intensity: float = 1.0
+
+    def gi_reflectance(self) -> np.ndarray:
+        """Reflectance used for injected (bounced) flux: bleed colour x intensity, else albedo."""
+        base = self.albedo if self.bleed_color is None else self.bleed_color
+        return np.asarray(base, np.float32) * np.float32(self.bleed_intensity)
+
+
+@dataclass
+class Light:
+    """A light in Blender units.
+
+    ``power`` is W for POINT/SPOT/AREA (exposure, normalize and temperature already applied by
+    the extractor) and W/m^2 for SUN. ``matrix`` is the 4x4 light-to-world transform; the light
+    shines along its local -Z axis like Blender's.
+    """
+
+    name: str
+    type: str
+    matrix: np.ndarray
+    color: np.ndarray = field(default_factory=lambda: np.ones(3, np.float32))
+    power: float = 100.0
+    spot_size: float = np.pi / 4.0  # full cone angle (rad)
+    spot_blend: float = 0.15
+    radius: float = 0.0  # shadow_soft_size
+    size: tuple[float, float] = (1.0, 1.0)  # area light extent (m) along local X and Y
+    gi_intensity: float = 1.0
+    cast_shadow: bool = True
+
+    @property
+    def position(self) -> np.ndarray:
+        return np.asarray(self.matrix, np.float64)[:3, 3]
+
+    @property
+    def direction(self) -> np.ndarray:
+        """Unit world-space direction the light points to (local -Z)."""
+        d = -np.asarray(self.matrix, np.float64)[:3, 2]
+        n = np.linalg.norm(d)
+        return d / n if n > 0 else np.array([0.0, 0.0, -1.0])
+
+    def radiant_color(self) -> np.ndarray:
+        """Colour x power: W (point/spot/area) or W/m^2 (sun) per channel."""
+        return np.asarray(self.color, np.float64) * float(self.power)
+
+
+@dataclass
+class Camera:
+    """A pinhole or orthographic camera: world-to-view and OpenGL projection matrices."""
+
+    view: np.ndarray  # 4x4 world -> camera (camera looks along -Z)
+    projection: np.ndarray  # 4x4 OpenGL clip matrix
+    resolution: tuple[int, int] = (256, 256)  # (width, height)
+
+    @property
+    def position(self) -> np.ndarray:
+        return np.linalg.inv(np.asarray(self.view, np.float64))[:3, 3]
+
+    @staticmethod
+    def look_at(
+        eye,
+        target,
+        up=(0.0, 0.0, 1.0),
+        fov_y: float = np.radians(40.0),
+        resolution: tuple[int, int] = (256, 256),
+        near: float = 0.05,
+        far: float = 1000.0,
+    ) -> "Camera":
+        """A perspective camera at ``eye`` looking at ``target`` (vertical field of view)."""
+        view = look_at_matrix(eye, target, up)
+        aspect = resolution[0] / resolution[1]
+        return Camera(view, perspective_matrix(fov_y, aspect, near, far), tuple(resolution))
+
+
+@dataclass
+class GISettings:
+    """Quality and artist settings for one LPV update."""
+
+    grid_resolution: int = 32
+    cascades: int = 1
+    iterations: int = 0  # 0: automatic (the grid resolution: light crosses the grid once)
+    rsm_resolution: int = 256
+    occlusion: bool = False
+    bounces: int = 1
+    backend: str = "numpy"
+    intensity: float = 1.0  # global GI multiplier (keyframable in the add-on)
+    shadow_resolution: int = 1024
+
+    def as_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    def updated(self, **changes) -> "GISettings":
+        """A copy with ``changes`` applied; unknown keys raise ValueError naming the key."""
+        known = {f.name: f for f in dataclasses.fields(self)}
+        values = {}
+        for key, value in changes.items():
+            if key not in known:
+                raise ValueError(f"unknown GI setting '{key}' (known: {', '.join(sorted(known))})")
+            current = getattr(self, key)
+            values[key] = _coerce(key, value, current)
+        return dataclasses.replace(self, **values)
+
+
+def _coerce(key: str, value, current):
+    if isinstance(value, str) and not isinstance(current, str):
+        try:
+            if isinstance(current, bool):
+                low = value.strip().lower()
+                if low not in ("1", "0", "true", "false", "on", "off", "yes", "no"):
+                    raise ValueError
+                return low in ("1", "true", "on", "yes")
+            return type(current)(float(value)) if isinstance(current, int) else float(value)
+        except ValueError:
+            raise ValueError(f"setting '{key}': cannot read '{value}' as {type(current).__name__}")
+    return value
+
+
+@dataclass
+class Scene:
+    """World-space triangles with per-corner normals, materials, lights and a camera."""
+
+    positions: np.ndarray  # (T, 3, 3) float32, triangle corners
+    normals: np.ndarray  # (T, 3, 3) float32, per-corner unit normals
+    material_index: np.ndarray  # (T,) int32 into ``materials``
+    materials: list[Material]
+    lights: list[Light]
+    camera: Camera | None = None
+    settings: GISettings = field(default_factory=GISettings)
+    object_index: np.ndarray | None = None  # (T,) int32 into ``object_names``
+    object_names: list[str] = field(default_factory=list)
+    dropped: dict = field(default_factory=dict)
+
+    @property
+    def triangle_count(self) -> int:
+        return int(self.positions.shape[0])
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Axis-aligned bounds of all triangles (zeros for an empty scene)."""
+        if self.triangle_count == 0:
+            return np.zeros(3), np.zeros(3)
+        p = self.positions.reshape(-1, 3)
+        return p.min(axis=0).astype(np.float64), p.max(axis=0).astype(np.float64)
+
+    def albedo_per_triangle(self) -> np.ndarray:
+        table = _material_table(self.materials, "albedo")
+        return table[self.material_index]
+
+    def reflectance_per_triangle(self) -> np.ndarray:
+        """GI reflectance (bleed colour where set) per triangle, (T, 3)."""
+        if not self.materials:
+            return np.full((self.triangle_count, 3), 0.8, np.float32)
+        table = np.array([m.gi_reflectance() for m in self.materials], np.float32)
+        return table[self.material_index]
+
+
+def _material_table(materials: list[Material], attr: str) -> np.ndarray:
+    if not materials:
+        return np.full((1, 3), 0.8, np.float32)
+    return np.array([np.asarray(getattr(m, attr), np.float32) for m in materials], np.float32)
+
+
+def make_scene(
+    positions,
+    normals=None,
+    material_index=None,
+    materials=None,
+    lights=None,
+    camera=None,
+    settings=None,
+    object_index=None,
+    object_names=None,
+) -> Scene:
+    """Build a validated Scene from loose arrays: bad triangles are dropped and counted.
+
+    Drops triangles with NaN/Inf corners, zero area, or a zero-length (or non-finite) normal;
+    missing normals default to the face normal. Material indices out of range fall back to a
+    default grey material appended at the end.
+    """
+    pos = np.asarray(positions, np.float32).reshape(-1, 3, 3)
+    t = pos.shape[0]
+    materials = list(materials or [])
+    mat = np.zeros(t, np.int32) if material_index is None else np.asarray(material_index, np.int32)
+    if mat.shape != (t,):
+        raise ValueError(f"material_index has shape {mat.shape}, expected ({t},)")
+    obj = None if object_index is None else np.asarray(object_index, np.int32).reshape(t)
+    with np.errstate(invalid="ignore", over="ignore"):
+        finite = np.isfinite(pos).all(axis=(1, 2))
+        p64 = np.where(finite[:, None, None], pos, 0).astype(np.float64)
+        cross = np.cross(p64[:, 1] - p64[:, 0], p64[:, 2] - p64[:, 0])
+        area2 = np.linalg.norm(cross, axis=1)
+        # Relative to the triangle's own size so the test does not depend on unit scale.
+        edge = np.abs(p64[:, 1:] - p64[:, :1]).max(axis=(1, 2))
+        degenerate = ~(area2 > (edge * edge) * 1e-12) | ~np.isfinite(area2)
+    if normals is None:
+        fn = cross / np.where(area2 > 0, area2, 1.0)[:, None]
+        nrm = np.repeat(fn[:, None, :], 3, axis=1).astype(np.float32)
+        bad_normal = np.zeros(t, bool)
+    else:
+        nrm = np.asarray(normals, np.float32).reshape(-1, 3, 3).copy()
+        if nrm.shape[0] != t:
+            raise ValueError(f"normals describe {nrm.shape[0]} triangles, positions {t}")
+        with np.errstate(invalid="ignore", over="ignore"):
+            length = np.linalg.norm(nrm.astype(np.float64), axis=2)
+        bad_normal = ~(np.isfinite(length) & (length > 1e-12)).all(axis=1)
+        nrm = (nrm / np.where(length > 1e-12, length, 1.0)[..., None]).astype(np.float32)
+    keep = finite & ~degenerate & ~bad_normal
+    dropped = {
+        "nonfinite_vertices": int((~finite).sum()),
+        "zero_area_triangles": int((finite & degenerate).sum()),
+        "zero_length_normals": int((finite & ~degenerate & bad_normal).sum()),
+    }
+    if mat.size and (mat.min() < 0 or mat.max() >= len(materials)):
+        out = (mat < 0) | (mat >= len(materials))
+        mat = np.where(out, len(materials), mat).astype(np.int32)
+        materials.append(Material("default"))
+    return Scene(
+        positions=np.ascontiguousarray(pos[keep]),
+        normals=np.ascontiguousarray(nrm[keep]),
+        material_index=np.ascontiguousarray(mat[keep]),
+        materials=materials or [Material("default")],
+        lights=list(lights or []),
+        camera=camera,
+        settings=settings or GISettings(),
+        object_index=None if obj is None else np.ascontiguousarray(obj[keep]),
+        object_names=list(object_names or []),
+        dropped=dropped,
+    )
+
+
+def look_at_matrix(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """World-to-view matrix for a camera at ``eye`` looking at ``target`` (OpenGL, -Z forward)."""
+    eye = np.asarray(eye, np.float64)
+    f = np.asarray(target, np.float64) - eye
+    f /= np.linalg.norm(f)
+    up = np.asarray(up, np.float64)
+    if abs(np.dot(f, up / np.linalg.norm(up))) > 0.999:
+        up = np.array([0.0, 1.0, 0.0]) if abs(f[1]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    s = np.cross(f, up)
+    s /= np.linalg.norm(s)
+    u = np.cross(s, f)
+    m = np.eye(4)
+    m[0, :3], m[1, :3], m[2, :3] = s, u, -f
+    m[:3, 3] = -m[:3, :3] @ eye
+    return m
+
+
+def perspective_matrix(fov_y: float, aspect: float, near: float, far: float) -> np.ndarray:
+    """OpenGL perspective projection (vertical field of view in radians)."""
+    f = 1.0 / np.tan(fov_y / 2.0)
+    m = np.zeros((4, 4))
+    m[0, 0] = f / aspect
+    m[1, 1] = f
+    m[2, 2] = (far + near) / (near - far)
+    m[2, 3] = 2.0 * far * near / (near - far)
+    m[3, 2] = -1.0
+    return m
+
+
+def orthographic_matrix(half_w: float, half_h: float, near: float, far: float) -> np.ndarray:
+    """OpenGL orthographic projection of a box [-half_w, half_w] x [-half_h, half_h]."""
+    m = np.eye(4)
+    m[0, 0] = 1.0 / half_w
+    m[1, 1] = 1.0 / half_h
+    m[2, 2] = -2.0 / (far - near)
+    m[2, 3] = -(far + near) / (far - near)
+    return m
