@@ -1,0 +1,17 @@
+"""Test isolation: Blender user resources and Mesa's shader cache go to a temp dir."""
+
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+_TMP = Path(tempfile.mkdtemp(prefix="lpv_test_"))
+# Must happen before anything imports bpy: keeps tests out of the user's Blender config.
+os.environ.setdefault("BLENDER_USER_RESOURCES", str(_TMP / "blender_user"))
+os.environ.setdefault("MESA_SHADER_CACHE_DIR", str(_TMP / "mesa_cache"))
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+# Cycles references and other expensive artefacts are cached here between runs.
+CACHE = Path(os.environ.get("LPV_TEST_CACHE", ROOT / ".cache" / "tests"))
