@@ -1,0 +1,69 @@
+"""Deferred renderer: G-buffer from the scene camera, direct light with shadow maps, LPV lookup.
+
+Output passes follow Cycles' names and meaning:
+  Diffuse Color    albedo of the surface seen by the pixel;
+  Diffuse Direct   direct irradiance / pi (so Direct x Color is the reflected direct radiance);
+  Diffuse Indirect LPV irradiance / pi;
+  Combined         (Direct + Indirect) x Color, alpha 1 (Cycles' film is opaque by default).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from . import direct, lookup
+from .engine import Engine, LPVResult, Stats, Timer
+from .scene import Scene
+
+PASS_NAMES = ("Combined", "Diffuse Direct", "Diffuse Indirect", "Diffuse Color")
+
+
+def render(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats | None = None) -> dict:
+    """Render the scene's camera view; returns {pass name: (H, W, C) float32}, rows top-first."""
+    stats = stats or lpv.stats
+    if scene.camera is None:
+        raise ValueError("the scene has no camera to render from")
+    w, h = scene.camera.resolution
+    if w <= 0 or h <= 0:
+        raise ValueError(f"render resolution {w}x{h} is not positive")
+    color = np.zeros((h, w, 3), np.float32)
+    diff_dir = np.zeros((h, w, 3), np.float32)
+    diff_ind = np.zeros((h, w, 3), np.float32)
+    if scene.triangle_count:
+        engine.upload(scene, stats)
+        with Timer(stats, "gbuffer"):
+            frame = engine.raster.render(scene.camera.view, scene.camera.projection, w, h)
+        mask = frame.covered
+        pos = frame.position[mask]
+        nrm = frame.normal[mask].astype(np.float64)
+        color[mask] = frame.albedo[mask]
+        lo, hi = scene.bounds()
+        with Timer(stats, "direct"):
+            e_dir = np.zeros((pos.shape[0], 3))
+            for light in scene.lights:
+                if light.power <= 0:
+                    continue
+                shadow = direct.render_shadow_map(engine.raster, light, (lo, hi),
+                                                  scene.settings.shadow_resolution)
+                e_dir += direct.irradiance(light, pos, nrm, shadow)
+            diff_dir[mask] = e_dir / np.pi
+        if lpv.values is not None:
+            with Timer(stats, "lookup"):
+                e_ind = lookup.irradiance(lpv.grid, lpv.values, pos, nrm)
+                diff_ind[mask] = e_ind / np.pi
+        else:
+            stats.skip("lookup", "all pixels", "no LPV (no GI-contributing light or geometry)")
+    combined = np.ones((h, w, 4), np.float32)
+    combined[..., :3] = (diff_dir + diff_ind) * color
+    passes = {
+        "Combined": combined,
+        "Diffuse Direct": diff_dir,
+        "Diffuse Indirect": diff_ind,
+        "Diffuse Color": color,
+    }
+    for name, arr in passes.items():
+        if not np.isfinite(arr).all():
+            bad = int((~np.isfinite(arr)).sum())
+            stats.dropped[f"nonfinite_pixels_{name}"] = bad
+            passes[name] = np.nan_to_num(arr, nan=0.0, posinf=0.0, neginf=0.0)
+    return passes

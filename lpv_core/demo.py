@@ -1,0 +1,94 @@
+"""A Cornell-style box built from numpy arrays (no bpy): for core tests and benchmarks."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .scene import Camera, GISettings, Light, Material, Scene, make_scene
+
+
+def box_triangles(lo, hi, inward: bool = False) -> np.ndarray:
+    """12 triangles (12, 3, 3) of an axis-aligned box; normals outward (or inward)."""
+    lo = np.asarray(lo, np.float64)
+    hi = np.asarray(hi, np.float64)
+    c = np.array([[x, y, z] for z in (lo[2], hi[2]) for y in (lo[1], hi[1])
+                  for x in (lo[0], hi[0])])
+    quads = [(0, 2, 3, 1), (4, 5, 7, 6), (0, 1, 5, 4), (2, 6, 7, 3), (0, 4, 6, 2), (1, 3, 7, 5)]
+    tris = []
+    for a, b, cc, d in quads:
+        t1, t2 = (a, b, cc), (a, cc, d)
+        if inward:
+            t1, t2 = t1[::-1], t2[::-1]
+        tris += [c[list(t1)], c[list(t2)]]
+    return np.array(tris)
+
+
+def quad(p0, p1, p2, p3) -> np.ndarray:
+    """Two triangles of the quad p0-p1-p2-p3 (counter-clockwise seen from the normal side)."""
+    p = np.asarray([p0, p1, p2, p3], np.float64)
+    return np.array([p[[0, 1, 2]], p[[0, 2, 3]]])
+
+
+def light_matrix(position, direction) -> np.ndarray:
+    """Light-to-world 4x4 whose local -Z points along ``direction``."""
+    d = np.asarray(direction, np.float64)
+    d = d / np.linalg.norm(d)
+    z = -d
+    up = np.array([0.0, 0.0, 1.0]) if abs(z[2]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = np.cross(up, z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    m = np.eye(4)
+    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = x, y, z, position
+    return m
+
+
+def cornell_box(
+    light_type: str = "SPOT",
+    resolution: tuple[int, int] = (128, 128),
+    settings: GISettings | None = None,
+    scale: float = 1.0,
+    offset=(0.0, 0.0, 0.0),
+    power: float = 300.0,
+) -> Scene:
+    """A 2 m box (x: -1..1, y: -1..1 depth, z: 0..2), red left, green right, open front (y=-1)."""
+    off = np.asarray(offset, np.float64)
+    s = float(scale)
+    mats = [Material("white", np.array([0.8, 0.8, 0.8], np.float32)),
+            Material("red", np.array([0.8, 0.1, 0.1], np.float32)),
+            Material("green", np.array([0.1, 0.8, 0.1], np.float32))]
+    tris, mat = [], []
+
+    def add(t, m):
+        tris.append(t)
+        mat.extend([m] * len(t))
+
+    add(quad((-1, -1, 0), (1, -1, 0), (1, 1, 0), (-1, 1, 0)), 0)  # floor
+    add(quad((-1, -1, 2), (-1, 1, 2), (1, 1, 2), (1, -1, 2)), 0)  # ceiling
+    add(quad((-1, 1, 0), (1, 1, 0), (1, 1, 2), (-1, 1, 2)), 0)  # back
+    add(quad((-1, -1, 0), (-1, 1, 0), (-1, 1, 2), (-1, -1, 2)), 1)  # left (red)
+    add(quad((1, -1, 0), (1, -1, 2), (1, 1, 2), (1, 1, 0)), 2)  # right (green)
+    add(box_triangles((-0.7, -0.1, 0), (-0.1, 0.6, 1.2)), 0)  # tall block
+    add(box_triangles((0.15, -0.6, 0), (0.75, 0.0, 0.6)), 0)  # short block
+    pos = np.concatenate(tris) * s + off
+    lights = []
+    if light_type == "SPOT":
+        lights.append(Light("Spot", "SPOT", light_matrix(np.array([0, 0, 1.9]) * s + off,
+                                                        (0, 0, -1)),
+                            power=power * s * s, spot_size=np.radians(120), spot_blend=0.15))
+    elif light_type == "POINT":
+        lights.append(Light("Point", "POINT", light_matrix(np.array([0, 0, 1.6]) * s + off,
+                                                          (0, 0, -1)), power=power * s * s))
+    elif light_type == "SUN":
+        lights.append(Light("Sun", "SUN", light_matrix(off, (0.3, 0.5, -0.8)), power=3.0))
+    elif light_type == "AREA":
+        lights.append(Light("Area", "AREA", light_matrix(np.array([0, 0, 1.95]) * s + off,
+                                                        (0, 0, -1)), power=power * s * s,
+                            size=(0.5 * s, 0.5 * s)))
+    elif light_type != "NONE":
+        raise ValueError(f"unknown light type {light_type!r}")
+    eye = np.array([0.0, -3.8, 1.0]) * s + off
+    cam = Camera.look_at(eye, np.array([0.0, 0.0, 1.0]) * s + off, fov_y=np.radians(40),
+                         resolution=resolution, near=0.05 * s, far=100.0 * s)
+    return make_scene(pos, material_index=np.array(mat), materials=mats, lights=lights,
+                      camera=cam, settings=settings or GISettings())

@@ -1,0 +1,206 @@
+"""Triangle rasterisation with moderngl: world position, normal and colours per pixel.
+
+One routine serves the reflective shadow maps (a light's view) and the camera G-buffer.
+Normals are flipped to face the viewer (Blender's surfaces are two-sided for diffuse light).
+The OpenGL context is a standalone one (EGL headless) owned by this process; inside
+Blender's UI process use the worker (see worker.py) instead, never this module directly.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+import numpy as np
+
+_CTX = None
+
+VERTEX_SHADER = """
+#version 330
+uniform mat4 view_proj;
+in vec3 in_pos;
+in vec3 in_nrm;
+in vec3 in_alb;
+in vec3 in_refl;
+out vec3 v_pos;
+out vec3 v_nrm;
+out vec3 v_alb;
+out vec3 v_refl;
+void main() {
+    v_pos = in_pos;
+    v_nrm = in_nrm;
+    v_alb = in_alb;
+    v_refl = in_refl;
+    gl_Position = view_proj * vec4(in_pos, 1.0);
+}
+"""
+
+FRAGMENT_SHADER = """
+#version 330
+uniform vec3 eye;        // viewer position (perspective)
+uniform vec3 view_dir;   // viewing direction (orthographic)
+uniform int ortho;
+uniform vec3 origin;     // subtracted from positions to keep precision far from the origin
+in vec3 v_pos;
+in vec3 v_nrm;
+in vec3 v_alb;
+in vec3 v_refl;
+layout(location = 0) out vec4 o_pos;
+layout(location = 1) out vec4 o_nrm;
+layout(location = 2) out vec4 o_alb;
+layout(location = 3) out vec4 o_refl;
+void main() {
+    vec3 n = normalize(v_nrm);
+    vec3 to_eye = ortho == 1 ? -view_dir : eye - v_pos;
+    if (dot(n, to_eye) < 0.0) n = -n;
+    o_pos = vec4(v_pos - origin, 1.0);
+    o_nrm = vec4(n, 0.0);
+    o_alb = vec4(v_alb, 1.0);
+    o_refl = vec4(v_refl, 1.0);
+}
+"""
+
+
+def gl_context():
+    """The process's standalone moderngl context (EGL headless, else the platform default)."""
+    global _CTX
+    if _CTX is None:
+        import moderngl
+
+        os.environ.setdefault("MESA_SHADER_CACHE_DIR", os.path.join(_cache_root(), "mesa"))
+        try:
+            _CTX = moderngl.create_standalone_context(backend="egl")
+        except Exception:  # noqa: BLE001 - fall back to the platform's default (WGL, CGL, GLX)
+            _CTX = moderngl.create_standalone_context()
+    return _CTX
+
+
+def _cache_root() -> str:
+    import tempfile
+
+    return os.path.join(tempfile.gettempdir(), "lpv_gi_cache")
+
+
+@dataclass
+class Frame:
+    """Rasterised buffers, (H, W, ...) float32 arrays, first row = top of the view."""
+
+    position: np.ndarray  # world position (origin restored), NaN where empty
+    normal: np.ndarray  # unit normal facing the viewer
+    albedo: np.ndarray  # diffuse colour
+    reflectance: np.ndarray  # GI reflectance (bleed colour where set)
+    covered: np.ndarray  # bool mask
+
+
+class Rasterizer:
+    """Uploads a scene's triangles once and renders them from any view."""
+
+    def __init__(self, ctx=None):
+        self.ctx = ctx or gl_context()
+        self.program = self.ctx.program(
+            vertex_shader=VERTEX_SHADER, fragment_shader=FRAGMENT_SHADER
+        )
+        self._vao = None
+        self._vbo = None
+        self._key = None
+        self._fbos: dict = {}
+        self.origin = np.zeros(3)
+
+    def upload(self, positions, normals, albedo, reflectance, key=None) -> None:
+        """Upload (T,3,3) corners and normals with (T,3) per-triangle colours."""
+        if key is not None and key == self._key:
+            return
+        pos = np.asarray(positions, np.float64).reshape(-1, 3, 3)
+        t = pos.shape[0]
+        # Keep vertex positions relative to a scene origin: float32 precision far from 0.
+        self.origin = (
+            0.5 * (pos.reshape(-1, 3).min(0) + pos.reshape(-1, 3).max(0)) if t else np.zeros(3)
+        )
+        rel = (pos - self.origin).astype(np.float32)
+        data = np.empty((t, 3, 12), np.float32)
+        data[..., 0:3] = rel
+        data[..., 3:6] = np.asarray(normals, np.float32).reshape(-1, 3, 3)
+        data[..., 6:9] = np.asarray(albedo, np.float32).reshape(-1, 1, 3)
+        data[..., 9:12] = np.asarray(reflectance, np.float32).reshape(-1, 1, 3)
+        self.release_geometry()
+        if t:
+            self._vbo = self.ctx.buffer(data.tobytes())
+            self._vao = self.ctx.vertex_array(
+                self.program,
+                [(self._vbo, "3f 3f 3f 3f", "in_pos", "in_nrm", "in_alb", "in_refl")],
+            )
+        self._key = key
+
+    def release_geometry(self) -> None:
+        for obj in (self._vao, self._vbo):
+            if obj is not None:
+                obj.release()
+        self._vao = self._vbo = None
+        self._key = None
+
+    def _fbo(self, width: int, height: int):
+        fbo = self._fbos.get((width, height))
+        if fbo is None:
+            colors = [self.ctx.texture((width, height), 4, dtype="f4") for _ in range(4)]
+            depth = self.ctx.depth_renderbuffer((width, height))
+            fbo = self.ctx.framebuffer(color_attachments=colors, depth_attachment=depth)
+            self._fbos[(width, height)] = fbo
+        return fbo
+
+    def render(
+        self,
+        view: np.ndarray,
+        projection: np.ndarray,
+        width: int,
+        height: int,
+        ortho: bool = False,
+    ) -> Frame:
+        """Rasterise from a world-to-view and projection matrix (OpenGL conventions)."""
+        view = np.asarray(view, np.float64)
+        inv_view = np.linalg.inv(view)
+        eye = inv_view[:3, 3]
+        view_dir = -inv_view[:3, 2]
+        # Translate the view so that it works on origin-relative vertices.
+        shift = np.eye(4)
+        shift[:3, 3] = self.origin
+        view_proj = np.asarray(projection, np.float64) @ view @ shift
+        fbo = self._fbo(width, height)
+        fbo.use()
+        fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
+        if self._vao is not None:
+            import moderngl
+
+            self.ctx.enable(moderngl.DEPTH_TEST)
+            self.ctx.disable(moderngl.CULL_FACE)
+            self.program["view_proj"].write(view_proj.T.astype(np.float32).tobytes())
+            self.program["eye"].value = tuple((eye - self.origin).astype(np.float32))
+            self.program["view_dir"].value = tuple(view_dir.astype(np.float32))
+            self.program["ortho"].value = int(ortho)
+            # Positions were uploaded relative to origin; the shader's origin uniform is 0.
+            self.program["origin"].value = (0.0, 0.0, 0.0)
+            self._vao.render()
+        out = []
+        for tex in fbo.color_attachments:
+            a = np.frombuffer(tex.read(), np.float32).reshape(height, width, 4)
+            out.append(a[::-1])  # GL's first row is the bottom
+        covered = out[0][..., 3] > 0.5
+        pos = out[0][..., :3].astype(np.float64) + self.origin
+        pos[~covered] = np.nan
+        return Frame(
+            position=pos,
+            normal=np.ascontiguousarray(out[1][..., :3]),
+            albedo=np.ascontiguousarray(out[2][..., :3]),
+            reflectance=np.ascontiguousarray(out[3][..., :3]),
+            covered=covered,
+        )
+
+    def release(self) -> None:
+        self.release_geometry()
+        for fbo in self._fbos.values():
+            for att in fbo.color_attachments:
+                att.release()
+            if fbo.depth_attachment is not None:
+                fbo.depth_attachment.release()
+            fbo.release()
+        self._fbos.clear()
+        self.program.release()
