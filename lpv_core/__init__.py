@@ -5,6 +5,21 @@ Kaplanyan & Dachsbacher, "Cascaded Light Propagation Volumes for Real-Time Indir
 Illumination", I3D 2010 [KD10].
 """
 
-from . import scene  # noqa: F401
+from . import (  # noqa: F401
+    deferred,
+    direct,
+    engine,
+    exr,
+    grid,
+    injection,
+    lights,
+    lookup,
+    propagation,
+    raster,
+    rsm,
+    scene,
+    sh,
+)
 
-__all__ = ["scene"]
+__all__ = ["deferred", "direct", "engine", "exr", "grid", "injection", "lights", "lookup",
+           "propagation", "raster", "rsm", "scene", "sh"]

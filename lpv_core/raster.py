@@ -67,7 +67,10 @@ def gl_context():
     if _CTX is None:
         import moderngl
 
-        os.environ.setdefault("MESA_SHADER_CACHE_DIR", os.path.join(_cache_root(), "mesa"))
+        if "MESA_SHADER_CACHE_DIR" not in os.environ:
+            cache = os.path.join(_cache_root(), "mesa")
+            os.makedirs(cache, exist_ok=True)
+            os.environ["MESA_SHADER_CACHE_DIR"] = cache
         try:
             _CTX = moderngl.create_standalone_context(backend="egl")
         except Exception:  # noqa: BLE001 - fall back to the platform's default (WGL, CGL, GLX)

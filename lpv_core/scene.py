@@ -144,7 +144,7 @@ def _coerce(key: str, value, current):
 class Scene:
     """World-space triangles with per-corner normals, materials, lights and a camera."""
 
-    positions: np.ndarray  # (T, 3, 3) float32, triangle corners
+    positions: np.ndarray  # (T, 3, 3) float64 triangle corners (precision far from origin)
     normals: np.ndarray  # (T, 3, 3) float32, per-corner unit normals
     material_index: np.ndarray  # (T,) int32 into ``materials``
     materials: list[Material]
@@ -201,7 +201,7 @@ def make_scene(
     missing normals default to the face normal. Material indices out of range fall back to a
     default grey material appended at the end.
     """
-    pos = np.asarray(positions, np.float32).reshape(-1, 3, 3)
+    pos = np.asarray(positions, np.float64).reshape(-1, 3, 3)
     t = pos.shape[0]
     materials = list(materials or [])
     mat = np.zeros(t, np.int32) if material_index is None else np.asarray(material_index, np.int32)

@@ -1,0 +1,205 @@
+"""Headless batch renderer: LPV GI frames as multi-layer EXR with Cycles' pass names.
+
+    python -m lpv_addon.batch SCENE.blend --out DIR [--frames A-B] [--resolution WxH]
+                              [--set key=value ...]
+    python -m lpv_addon.batch --demo --out DIR
+
+Per frame it writes DIR/NNNN.exr (Combined, Diffuse Direct, Diffuse Indirect, Diffuse Color)
+and rewrites DIR/stats.json; both appear atomically, so a cancelled batch keeps finished frames.
+Progress goes to stderr. Exit 0 on success, 2 with a one-line reason on bad arguments or input.
+The engine runs in this process: no Blender drawing happens here (see design.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+USAGE_ERROR = 2
+
+
+class BatchError(Exception):
+    """Bad arguments or unreadable input: reported as one line, exit code 2."""
+
+
+def parse_frames(text: str | None) -> tuple[int, int] | None:
+    """'A-B' or 'A' -> (A, B); None stays None (the scene's frame range)."""
+    if text is None:
+        return None
+    try:
+        if "-" in text.strip()[1:]:
+            head, tail = text.strip()[0], text.strip()[1:]
+            a, b = tail.split("-", 1)
+            a, b = int(head + a), int(b)
+        else:
+            a = b = int(text)
+    except ValueError:
+        raise BatchError(f"--frames: expected A-B or A, got '{text}'") from None
+    if b < a:
+        raise BatchError(f"--frames: end {b} is before start {a}")
+    return a, b
+
+
+def parse_resolution(text: str | None) -> tuple[int, int] | None:
+    if text is None:
+        return None
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise BatchError(f"--resolution: expected WxH, got '{text}'") from None
+    if w <= 0 or h <= 0 or w > 16384 or h > 16384:
+        raise BatchError(f"--resolution: {w}x{h} is out of range 1..16384")
+    return w, h
+
+
+def parse_settings(items: list[str]) -> dict:
+    """['key=value', ...] -> dict, checked against the GI settings."""
+    from ._core import core
+
+    out = {}
+    for item in items or []:
+        if "=" not in item:
+            raise BatchError(f"--set: expected key=value, got '{item}'")
+        key, value = item.split("=", 1)
+        out[key.strip()] = value.strip()
+    try:
+        core.scene.GISettings().updated(**out)
+    except ValueError as exc:
+        raise BatchError(f"--set: {exc}") from None
+    return out
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m lpv_addon.batch", description=__doc__.split("\n")[0])
+    p.add_argument("blend", nargs="?", help="the .blend file to render")
+    p.add_argument("--demo", action="store_true", help="render the built-in Cornell box")
+    p.add_argument("--out", required=True, help="output folder (created if missing)")
+    p.add_argument("--frames", help="frame range A-B (default: the scene's)")
+    p.add_argument("--resolution", help="WxH (default: the scene's render resolution)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a GI setting (repeatable), e.g. grid_resolution=32")
+    p.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    return p
+
+
+def _progress(quiet: bool, msg: str) -> None:
+    if not quiet:
+        print(msg, file=sys.stderr, flush=True)
+
+
+def _write_json_atomic(path: Path, data: dict) -> None:
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(json.dumps(data, indent=1))
+    os.replace(tmp, path)
+
+
+def open_scene(args) -> "object":
+    """Load the .blend (or build the demo) and return the bpy scene to render."""
+    import bpy
+
+    if args.demo:
+        if args.blend:
+            raise BatchError("give either a .blend file or --demo, not both")
+        from . import scenes
+
+        scenes.cornell_box("SPOT", resolution=(256, 256))
+        scene = bpy.context.scene
+        scene.frame_start = scene.frame_end = 1  # a still: one frame unless --frames says more
+        return scene
+    if not args.blend:
+        raise BatchError("no .blend file given (or use --demo)")
+    path = Path(args.blend)
+    if not path.is_file():
+        raise BatchError(f"cannot read '{path}': no such file")
+    with open(path, "rb") as fh:
+        magic = fh.read(7)
+    if magic not in (b"BLENDER",) and magic[:2] not in (b"\x1f\x8b", b"\x28\xb5"):
+        raise BatchError(f"cannot read '{path}': not a .blend file")
+    try:
+        bpy.ops.wm.open_mainfile(filepath=str(path), load_ui=False)
+    except RuntimeError as exc:
+        raise BatchError(f"cannot read '{path}': {str(exc).strip().splitlines()[-1]}") from None
+    scene = bpy.context.scene
+    if scene.camera is None:
+        raise BatchError(f"scene '{scene.name}' in '{path}' has no active camera")
+    return scene
+
+
+def run(argv: list[str] | None = None) -> int:
+    """The CLI; returns the exit code."""
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # argparse already printed its one-line reason
+        return USAGE_ERROR if exc.code else 0
+    try:
+        frames = parse_frames(args.frames)
+        resolution = parse_resolution(args.resolution)
+        overrides = parse_settings(args.set)
+        out = Path(args.out)
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise BatchError(f"--out: cannot create '{out}': {exc.strerror}") from None
+        scene = open_scene(args)
+    except BatchError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return USAGE_ERROR
+    return render_frames(scene, out, frames, resolution, overrides, args.quiet)
+
+
+def render_frames(scene, out: Path, frames, resolution, overrides: dict, quiet: bool) -> int:
+    """Render every frame of the range; keeps finished frames if interrupted."""
+    import bpy
+
+    from ._core import core
+    from .extract import extract_scene
+
+    first, last = frames or (scene.frame_start, scene.frame_end)
+    engine = core.engine.Engine()
+    record = {"scene": scene.name, "settings": None, "frames": []}
+    original_frame = scene.frame_current
+    try:
+        for i, frame in enumerate(range(first, last + 1)):
+            t0 = time.perf_counter()
+            scene.frame_set(frame)
+            stats = core.engine.Stats()
+            timings: dict = {}
+            depsgraph = bpy.context.evaluated_depsgraph_get()
+            t_ex = time.perf_counter()
+            try:
+                lpv_scene = extract_scene(depsgraph, scene, resolution, overrides, timings=timings)
+            except ValueError as exc:
+                print(f"error: frame {frame}: {exc}", file=sys.stderr)
+                return USAGE_ERROR
+            stats.add_ms("extract", time.perf_counter() - t_ex)
+            if record["settings"] is None:
+                record["settings"] = lpv_scene.settings.as_dict()
+            result = engine.update(lpv_scene, stats)
+            passes = core.deferred.render(engine, lpv_scene, result, stats)
+            t_w = time.perf_counter()
+            core.exr.write_multilayer(out / f"{frame:04d}.exr", passes)
+            stats.add_ms("write", time.perf_counter() - t_w)
+            stats.ms["total"] = (time.perf_counter() - t0) * 1000.0
+            entry = {"frame": frame, **stats.as_dict(), "intensity": lpv_scene.settings.intensity}
+            entry["extract_ms"] = timings
+            record["frames"].append(entry)
+            _write_json_atomic(out / "stats.json", record)
+            _progress(quiet, f"frame {frame} ({i + 1}/{last - first + 1}): "
+                             f"{stats.ms['total']:.0f} ms, LPV {stats.ms.get('lpv_update', 0):.0f} ms"
+                             f" -> {out / f'{frame:04d}.exr'}")
+    finally:
+        scene.frame_set(original_frame)
+    return 0
+
+
+def main() -> None:
+    sys.exit(run())
+
+
+if __name__ == "__main__":
+    main()

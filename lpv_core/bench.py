@@ -1,0 +1,77 @@
+"""Benchmark: per-stage medians of the LPV update and render on the built-in Cornell box.
+
+    python -m lpv_core.bench [--quick] [--json] [--repeat N] [--resolution WxH]
+
+Prints one JSON object (--json) or a table. Times are medians over the repeats, measured in one
+run on this machine; compare ratios, not absolute numbers, across machines.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import statistics
+import sys
+import time
+
+from . import deferred, demo, engine
+from .scene import GISettings
+
+
+def run(repeat: int, resolution: tuple[int, int], settings: GISettings) -> dict:
+    """Median milliseconds per stage over ``repeat`` full updates + renders."""
+    scene = demo.cornell_box("SPOT", resolution, settings)
+    eng = engine.Engine()
+    samples: dict[str, list[float]] = {}
+    result = None
+    for _ in range(repeat + 1):  # the first run warms up shaders and caches
+        stats = engine.Stats()
+        t0 = time.perf_counter()
+        result = eng.update(scene, stats)
+        deferred.render(eng, scene, result, stats)
+        stats.ms["total"] = (time.perf_counter() - t0) * 1000.0
+        if result is not None and samples.get("_warm") is None:
+            samples["_warm"] = []
+            continue
+        for k, v in stats.ms.items():
+            samples.setdefault(k, []).append(v)
+    samples.pop("_warm", None)
+    medians = {k: statistics.median(v) for k, v in samples.items()}
+    return {
+        "scene": "cornell_box_spot",
+        "resolution": list(resolution),
+        "repeat": repeat,
+        "settings": settings.as_dict(),
+        "backend": settings.backend,
+        "median_ms": medians,
+        "full_update_ms": medians.get("lpv_update", 0.0),
+        "iterations": result.stats.info.get("iterations") if result else None,
+        "machine": {"python": platform.python_version(), "processor": platform.machine()},
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m lpv_core.bench", description=__doc__.split("\n")[0])
+    p.add_argument("--quick", action="store_true", help="3 repeats at 128x128")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--repeat", type=int, default=None)
+    p.add_argument("--resolution", default=None, help="WxH of the rendered image")
+    args = p.parse_args(argv)
+    repeat = args.repeat or (3 if args.quick else 7)
+    res = (128, 128) if args.quick else (256, 256)
+    if args.resolution:
+        w, h = args.resolution.lower().split("x")
+        res = (int(w), int(h))
+    out = run(repeat, res, GISettings())
+    if args.json:
+        print(json.dumps(out))
+    else:
+        print(f"Cornell box, {res[0]}x{res[1]}, median of {repeat}:")
+        for k, v in sorted(out["median_ms"].items(), key=lambda kv: -kv[1]):
+            print(f"  {k:<14} {v:9.1f} ms")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
