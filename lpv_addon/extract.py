@@ -1,0 +1,596 @@
+"""Blender depsgraph -> lpv_core Scene: evaluated triangles, materials, lights, camera, settings.
+
+Geometry is read with ``foreach_get`` into numpy and transformed to world space in numpy (no
+per-triangle Python). Per-mesh arrays are cached within one call so instances cost a transform.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from contextlib import contextmanager
+
+import bpy
+import numpy as np
+
+from ._core import core
+
+MESH_LIKE = frozenset({"MESH", "CURVE", "SURFACE", "FONT", "META"})
+# Object types with geometry we cannot triangulate (hair curves, point clouds, volumes, ...).
+UNSUPPORTED = frozenset({"CURVES", "POINTCLOUD", "VOLUME", "GPENCIL", "GREASEPENCIL"})
+# Scene.lpv properties copied into GISettings (see properties.py).
+SCENE_SETTINGS = (
+    "grid_resolution", "cascades", "iterations", "rsm_resolution",
+    "occlusion", "bounces", "backend", "intensity",
+)
+DEFAULT_ALBEDO = (0.8, 0.8, 0.8)
+# Large images are subsampled to about this many pixels for their mean colour.
+_IMAGE_MEAN_PIXELS = 1 << 20
+
+
+class _Timer:
+    """Accumulates milliseconds per phase into a dict (or does nothing without one)."""
+
+    def __init__(self, out: dict | None) -> None:
+        self.out = out
+
+    @contextmanager
+    def phase(self, name: str):
+        if self.out is None:
+            yield
+            return
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.out[name] = self.out.get(name, 0.0) + (time.perf_counter() - t0) * 1000.0
+
+
+def extract_scene(
+    depsgraph: bpy.types.Depsgraph,
+    scene: bpy.types.Scene | None = None,
+    resolution: tuple[int, int] | None = None,
+    settings_overrides: dict | None = None,
+    *,
+    require_camera: bool = True,
+    render_visibility: bool = True,
+    timings: dict | None = None,
+) -> core.scene.Scene:
+    """The evaluated scene of ``depsgraph`` as a validated core Scene (bad triangles dropped).
+
+    ``render_visibility`` skips objects hidden for render; ``timings`` gets ms per phase.
+    """
+    if depsgraph is None or not hasattr(depsgraph, "object_instances"):
+        raise ValueError(f"extract_scene needs a bpy Depsgraph, got {type(depsgraph).__name__}")
+    if scene is None:
+        # The original scene: Python-set properties reach it at once (the evaluated copy lags
+        # until the next update), and the active depsgraph writes animated values back to it.
+        scene = depsgraph.scene
+    timer = _Timer(timings)
+    geo = _GeometryCollector(timer)
+    lights: list = []
+    dropped = dict.fromkeys(
+        ("objects_without_geometry", "objects_degenerate_transform", "unsupported_objects"), 0
+    )
+
+    def count(key: str) -> None:
+        dropped[key] += 1
+
+    for inst in depsgraph.object_instances:
+        ob = inst.object
+        kind = ob.type
+        if kind not in MESH_LIKE and kind != "LIGHT":
+            if kind in UNSUPPORTED:
+                count("unsupported_objects")
+            continue
+        if not _visible(inst, ob, render_visibility):
+            continue
+        matrix = np.array(inst.matrix_world, np.float64)  # copy now: inst is reused
+        if kind == "LIGHT":
+            with timer.phase("lights"):
+                lights.append(light_from_object(ob, matrix))
+        else:
+            geo.add(ob, matrix, count)
+
+    with timer.phase("camera"):
+        camera = None
+        if scene.camera is not None:
+            camera = camera_from_scene(depsgraph, scene, resolution)
+        elif require_camera:
+            raise ValueError(
+                f"scene '{scene.name}' has no active camera: set one (Scene properties > Camera) "
+                "or extract with require_camera=False"
+            )
+        settings = settings_from_scene(scene, settings_overrides)
+
+    positions, normals, mat_index, obj_index = geo.arrays()
+    with timer.phase("make_scene"):
+        result = core.scene.make_scene(
+            positions, normals, mat_index, geo.materials, lights, camera, settings,
+            object_index=obj_index, object_names=geo.object_names,
+        )
+    for key, value in dropped.items():
+        result.dropped[key] = result.dropped.get(key, 0) + value
+    return result
+
+
+def _visible(inst, ob, render_visibility: bool) -> bool:
+    """What Cycles shows (show_self), and with ``render_visibility`` also what renders."""
+    if not inst.show_self:
+        return False
+    if not render_visibility:
+        return True
+    orig = ob.original
+    if orig.hide_render:
+        return False
+    if inst.is_instance:
+        parent = inst.parent
+        return parent is None or not parent.original.hide_render
+    # A vertex/face instancer itself is hidden in renders unless asked for.
+    if getattr(orig, "is_instancer", False) and orig.instance_type in ("VERTS", "FACES"):
+        return bool(getattr(orig, "show_instancer_for_render", True))
+    return True
+
+
+# --------------------------------------------------------------------------------- geometry
+
+
+class _GeometryCollector:
+    """Gathers world-space triangle chunks, caching per-mesh local arrays across instances."""
+
+    def __init__(self, timer: _Timer) -> None:
+        self.timer = timer
+        self.cache: dict[int, tuple] = {}
+        self.chunks: list[tuple] = []
+        self.materials: list = []
+        self._material_ids: dict = {}
+        self._image_means: dict = {}
+        self.object_names: list[str] = []
+        self._object_ids: dict[str, int] = {}
+
+    def add(self, ob, matrix: np.ndarray, count) -> None:
+        """Add one evaluated mesh-like object instance with its world matrix."""
+        local = self._local_arrays(ob)
+        if local is None or local[0].shape[0] == 0:
+            count("objects_without_geometry")
+            return
+        pos, nrm, slot_index = local
+        with self.timer.phase("materials"):
+            table = self._slot_table(ob)
+            mat = np.take(table, np.minimum(slot_index, len(table) - 1))  # Blender clamps
+        if _degenerate(matrix):
+            count("objects_degenerate_transform")
+            return
+        oid = self._object_ids.setdefault(ob.name, len(self.object_names))
+        if oid == len(self.object_names):
+            self.object_names.append(ob.name)
+        self.chunks.append((pos, nrm, matrix, mat, oid))
+
+    def _local_arrays(self, ob):
+        key = ob.data.as_pointer() if ob.type == "MESH" and ob.data is not None else None
+        if key is not None and key in self.cache:
+            return self.cache[key]
+        with self.timer.phase("mesh_eval"):
+            try:
+                mesh = ob.to_mesh()
+            except RuntimeError as exc:
+                raise ValueError(f"object '{ob.name}': cannot evaluate its mesh ({exc})") from exc
+        try:
+            arrays = None if mesh is None else mesh_arrays(mesh, self.timer)
+        finally:
+            with self.timer.phase("mesh_eval"):
+                ob.to_mesh_clear()
+        if key is not None:
+            self.cache[key] = arrays
+        return arrays
+
+    def _slot_table(self, ob) -> np.ndarray:
+        slots = [slot.material for slot in ob.material_slots] or [None]
+        return np.array([self._material_id(m) for m in slots], np.int32)
+
+    def _material_id(self, mat) -> int:
+        key = None if mat is None else mat.original.session_uid
+        mid = self._material_ids.get(key)
+        if mid is None:
+            if mat is None:
+                m = core.scene.Material("(none)", np.array(DEFAULT_ALBEDO, np.float32))
+            else:
+                m = core.scene.Material(mat.name, material_albedo(mat, self._image_means))
+            mid = self._material_ids[key] = len(self.materials)
+            self.materials.append(m)
+        return mid
+
+    def arrays(self):
+        """World-space (positions, normals, material, object index): each instance is
+        transformed straight into its slice of the output (no per-chunk copies)."""
+        with self.timer.phase("transform"):
+            sizes = [len(c[3]) for c in self.chunks]
+            total = sum(sizes)
+            pos = np.empty((total, 3, 3), np.float32)
+            nrm = np.empty((total, 3, 3), np.float32)
+            start = 0
+            for (p, n, matrix, _, _), size in zip(self.chunks, sizes):
+                _to_world(p, n, matrix, pos[start:start + size], nrm[start:start + size])
+                start += size
+            mat = np.concatenate([c[3] for c in self.chunks] or [np.zeros(0, np.int32)])
+            oids = np.array([c[4] for c in self.chunks], np.int32)
+            return pos, nrm, mat, np.repeat(oids, sizes)
+
+
+def mesh_arrays(mesh: bpy.types.Mesh, timer: _Timer | None = None):
+    """Local (positions (T,3,3), corner normals (T,3,3), slot index (T,)) of a mesh; tri/quad
+    meshes are split in numpy (the RNA ``loop_triangles`` read is slow: n-gons only)."""
+    timer = timer or _Timer(None)
+    with timer.phase("triangles"):
+        mesh.calc_loop_triangles()
+        t = len(mesh.loop_triangles)
+        n_poly = len(mesh.polygons)
+        n_loop = len(mesh.loops)
+        if t == 0:
+            z = np.zeros((0, 3, 3), np.float32)
+            return z, z.copy(), np.zeros(0, np.int32)
+        tri_poly = _read(mesh.loop_triangle_polygons, "value", t, np.int32)
+        corner_vert = _corner_verts(mesh, n_loop)
+    with timer.phase("positions"):
+        co = _read(mesh.attributes["position"].data, "vector", 3 * len(mesh.vertices), np.float32)
+        co = co.reshape(-1, 3)
+    with timer.phase("triangles"):
+        loops = _quad_split_corners(tri_poly, n_poly, n_loop, corner_vert, co)
+        if loops is None:
+            loops = _read(mesh.loop_triangles, "loops", 3 * t, np.int32).reshape(t, 3)
+        tri_verts = np.take(corner_vert, loops)
+    with timer.phase("positions"):
+        pos = np.take(co, tri_verts, axis=0)
+    with timer.phase("normals"):
+        domain = getattr(mesh, "normals_domain", "CORNER")
+        if domain == "POINT":
+            vn = _read(mesh.vertex_normals, "vector", 3 * len(mesh.vertices), np.float32)
+            nrm = np.take(vn.reshape(-1, 3), tri_verts, axis=0)
+        elif domain == "FACE":
+            fn = _read(mesh.polygon_normals, "vector", 3 * n_poly, np.float32).reshape(-1, 3)
+            nrm = np.repeat(np.take(fn, tri_poly, axis=0)[:, None, :], 3, axis=1)
+        else:
+            cn = _read(mesh.corner_normals, "vector", 3 * n_loop, np.float32)
+            nrm = np.take(cn.reshape(-1, 3), loops, axis=0)
+    with timer.phase("materials"):
+        attr = mesh.attributes.get("material_index")
+        if attr is not None and attr.domain == "FACE" and attr.data_type == "INT":
+            face_mat = _read(attr.data, "value", n_poly, np.int32)
+            slot = np.maximum(np.take(face_mat, tri_poly), 0)
+        else:
+            slot = np.zeros(t, np.int32)
+    return pos, nrm, slot
+
+
+def _read(collection, prop: str, n: int, dtype) -> np.ndarray:
+    out = np.empty(n, dtype)
+    collection.foreach_get(prop, out)
+    return out
+
+
+def _quad_split_corners(tri_poly, n_poly, n_loop, corner_vert, co) -> np.ndarray | None:
+    """(T, 3) corners for tri/quad meshes (else None), quads split as Blender does: on 0-2, or
+    on 1-3 where 1 and 3 lie on one side of 0-2 (BLI is_quad_flip_v3_first_third_fast)."""
+    t = tri_poly.shape[0]
+    if t == n_poly and n_loop == 3 * t:  # all triangles
+        return np.arange(n_loop, dtype=np.int32).reshape(t, 3)
+    counts = np.bincount(tri_poly, minlength=n_poly)
+    if counts.shape[0] != n_poly or counts.max() > 2 or counts.min() < 1:
+        return None
+    if int(counts.sum()) + 2 * n_poly != n_loop:
+        return None
+    if t == 2 * n_poly:  # all quads: no index arithmetic per triangle needed
+        starts = np.arange(0, n_loop, 4, dtype=np.int32)
+        first = np.arange(0, t, 2, dtype=np.int32)
+        loops = np.empty((n_poly, 2, 3), np.int32)
+        loops[:, :, 0] = starts[:, None]
+        loops[:, 0, 1] = starts + 1
+        loops[:, :, 2] = starts[:, None] + np.array([2, 3], np.int32)
+        loops[:, 1, 1] = loops[:, 0, 2]
+        loops = loops.reshape(t, 3)
+        quad_verts = corner_vert.reshape(n_poly, 4).T
+    else:
+        sizes = counts + 2
+        starts = (np.cumsum(sizes) - sizes).astype(np.int32)
+        first_tri = (np.cumsum(counts) - counts).astype(np.int32)
+        ls = np.take(starts, tri_poly)
+        k = np.arange(t, dtype=np.int32) - np.take(first_tri, tri_poly)
+        loops = np.stack([ls, ls + k + 1, ls + k + 2], axis=1)
+        is_quad = counts == 2
+        starts, first = starts[is_quad], first_tri[is_quad]
+        quad_verts = np.stack([np.take(corner_vert, starts + j) for j in range(4)])
+    if starts.size:
+        # Components as contiguous rows (3, 4, Q): strided column maths is several times slower.
+        (v0x, v1x, v2x, v3x), (v0y, v1y, v2y, v3y), (v0z, v1z, v2z, v3z) = np.take(
+            np.ascontiguousarray(co.T), quad_verts, axis=1
+        )
+        ax, ay, az = v1x - v0x, v1y - v0y, v1z - v0z
+        bx, by, bz = v3x - v0x, v3y - v0y, v3z - v0z
+        cx, cy, cz = v2x - v0x, v2y - v0y, v2z - v0z
+        # (a x c) . (b x c) > 0 in float32, component-wise as Blender computes it.
+        flip = (
+            (ay * cz - az * cy) * (by * cz - bz * cy)
+            + (az * cx - ax * cz) * (bz * cx - bx * cz)
+            + (ax * cy - ay * cx) * (bx * cy - by * cx)
+        ) > 0
+        if flip.any():
+            s = starts[flip][:, None]
+            tri = first[flip]
+            loops[tri] = s + np.array([0, 1, 3], np.int32)
+            loops[tri + 1] = s + np.array([1, 2, 3], np.int32)
+    return loops
+
+
+def _corner_verts(mesh, n_loop: int) -> np.ndarray:
+    attr = mesh.attributes.get(".corner_vert")
+    if attr is not None:
+        return _read(attr.data, "value", n_loop, np.int32)
+    return _read(mesh.loops, "vertex_index", n_loop, np.int32)
+
+
+def _degenerate(matrix: np.ndarray) -> bool:
+    """A finite transform that flattens the object (zero scale on some axis)."""
+    m3 = matrix[:3, :3]
+    return bool(np.isfinite(m3).all()) and abs(float(np.linalg.det(m3))) < 1e-30
+
+
+def _to_world(pos, nrm, matrix: np.ndarray, out_pos: np.ndarray, out_nrm: np.ndarray) -> None:
+    """Write world-space triangles into ``out_*``: normals by the inverse transpose, winding
+    kept consistent with them for mirrored objects (NaN transforms give NaN: dropped later)."""
+    m3 = matrix[:3, :3]
+    if not np.isfinite(matrix).all():
+        out_pos.fill(np.nan)
+        out_nrm[:] = nrm
+        return
+    if np.array_equal(matrix, np.eye(4)):
+        out_pos[:] = pos
+        out_nrm[:] = nrm
+        return
+    # One (3T, 3) x (3, 3) product: several times faster than a batched (T, 3, 3) matmul.
+    np.matmul(pos.reshape(-1, 3), m3.T.astype(np.float32), out=out_pos.reshape(-1, 3))
+    out_pos += matrix[:3, 3].astype(np.float32)
+    # n' = inv(M)^T n; as row vectors: n @ inv(M). make_scene renormalises.
+    np.matmul(nrm.reshape(-1, 3), np.linalg.inv(m3).astype(np.float32),
+              out=out_nrm.reshape(-1, 3))
+    if np.linalg.det(m3) < 0:  # a mirror flips winding: swap two corners to match the normals
+        for arr in (out_pos, out_nrm):
+            corner = arr[:, 1].copy()
+            arr[:, 1] = arr[:, 2]
+            arr[:, 2] = corner
+
+
+# -------------------------------------------------------------------------------- materials
+
+
+def material_albedo(mat: bpy.types.Material | None, image_cache: dict | None = None) -> np.ndarray:
+    """Diffuse albedo (linear RGB) from the BSDF on the active output's Surface (Principled,
+    Diffuse, Mix/Add; a linked image gives its mean), else the viewport ``diffuse_color``."""
+    if mat is None:
+        return np.array(DEFAULT_ALBEDO, np.float32)
+    fallback = np.array(mat.diffuse_color[:3], np.float32)
+    tree = getattr(mat, "node_tree", None)
+    if tree is None or (bpy.app.version < (5, 0, 0) and not mat.use_nodes):
+        return fallback
+    output = _active_output(tree)
+    if output is None:
+        return fallback
+    surface = output.inputs.get("Surface")
+    if surface is None or not surface.is_linked:
+        return fallback
+    cache = {} if image_cache is None else image_cache
+    color = _shader_albedo(_link_source(surface), fallback, cache, depth=0)
+    return np.clip(np.asarray(color, np.float32), 0.0, None)
+
+
+def _active_output(tree):
+    outputs = [n for n in tree.nodes if n.bl_idname == "ShaderNodeOutputMaterial"]
+    for node in outputs:
+        if node.is_active_output and node.target in ("ALL", "CYCLES"):
+            return node
+    for node in outputs:
+        if node.is_active_output:
+            return node
+    return outputs[0] if outputs else None
+
+
+def _link_source(socket):
+    """(node, output socket) feeding an input socket, through reroutes; None if unlinked."""
+    for _ in range(64):
+        if not socket.is_linked or not socket.links:
+            return None
+        link = socket.links[0]
+        if link.is_muted:
+            return None
+        node = link.from_node
+        if node.bl_idname != "NodeReroute":
+            return node, link.from_socket
+        socket = node.inputs[0]
+    return None
+
+
+def _shader_albedo(source, fallback, cache, depth):
+    if source is None:
+        return np.zeros(3, np.float32)  # an unlinked shader input is black
+    node, _ = source
+    if depth > 16 or node.mute:
+        return fallback
+    kind = node.bl_idname
+    if kind == "ShaderNodeBsdfPrincipled":
+        return _color_input(node.inputs["Base Color"], cache)
+    if kind == "ShaderNodeBsdfDiffuse":
+        return _color_input(node.inputs["Color"], cache)
+    if kind in ("ShaderNodeMixShader", "ShaderNodeAddShader"):
+        shaders = [s for s in node.inputs if s.type == "SHADER"]
+        a = _shader_albedo(_link_source(shaders[0]), fallback, cache, depth + 1)
+        b = _shader_albedo(_link_source(shaders[1]), fallback, cache, depth + 1)
+        if kind == "ShaderNodeAddShader":
+            return a + b
+        fac_socket = node.inputs[0]
+        fac = 0.5 if fac_socket.is_linked else float(np.clip(fac_socket.default_value, 0, 1))
+        return (1.0 - fac) * a + fac * b
+    return fallback
+
+
+def _color_input(socket, cache) -> np.ndarray:
+    """A colour socket's value: its default, or the mean of a linked image / RGB node."""
+    default = np.array(socket.default_value[:3], np.float32)
+    source = _link_source(socket)
+    if source is None:
+        return default
+    node, out = source
+    if node.bl_idname == "ShaderNodeTexImage" and node.image is not None:
+        mean = image_mean_color(node.image, cache)
+        return default if mean is None else mean
+    if node.bl_idname == "ShaderNodeRGB":
+        return np.array(out.default_value[:3], np.float32)
+    return default
+
+
+def image_mean_color(image: bpy.types.Image, cache: dict | None = None) -> np.ndarray | None:
+    """Mean linear RGB of an image's pixels (sRGB byte images linearised); None if empty."""
+    key = image.original.session_uid if image.original is not None else image.name
+    if cache is not None and key in cache:
+        return cache[key]
+    mean = None
+    w, h = image.size[:]
+    channels = image.channels
+    if w > 0 and h > 0 and channels >= 3:
+        px = np.empty(w * h * channels, np.float32)
+        image.pixels.foreach_get(px)
+        px = px.reshape(-1, channels)[:, :3]
+        step = max(1, px.shape[0] // _IMAGE_MEAN_PIXELS)
+        px = px[::step].astype(np.float64)
+        if not image.is_float and image.colorspace_settings.name == "sRGB":
+            px = _srgb_to_linear(px)
+        finite = np.isfinite(px).all(axis=1)
+        if finite.any():
+            mean = px[finite].mean(axis=0).astype(np.float32)
+    if cache is not None:
+        cache[key] = mean
+    return mean
+
+
+def _srgb_to_linear(c: np.ndarray) -> np.ndarray:
+    c = np.clip(c, 0.0, None)
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+
+
+# ----------------------------------------------------------------------------------- lights
+
+
+def light_from_object(ob: bpy.types.Object, matrix: np.ndarray) -> core.scene.Light:
+    """A core Light in Cycles' units: power = energy x 2^exposure (x world area for area lights
+    without ``normalize``); colour x blackbody tint when ``use_temperature``."""
+    light = ob.data
+    kind = light.type
+    if kind not in core.scene.LIGHT_TYPES:
+        raise ValueError(f"light '{ob.name}': unsupported light type {kind}")
+    color = np.array(light.color[:3], np.float64)
+    if getattr(light, "use_temperature", False) and hasattr(light, "temperature_color"):
+        color = color * np.array(light.temperature_color[:3], np.float64)
+    power = float(light.energy)
+    if hasattr(light, "exposure"):
+        power *= 2.0 ** float(light.exposure)
+    size = (1.0, 1.0)
+    if kind == "AREA":
+        sx = float(light.size)
+        sy = sx if light.shape in ("SQUARE", "DISK") else float(light.size_y)
+        size = (sx, sy)
+        if not getattr(light, "normalize", True):
+            # Cycles: the emitter's world size includes the object's scale.
+            wx = sx * float(np.linalg.norm(matrix[:3, 0]))
+            wy = sy * float(np.linalg.norm(matrix[:3, 1]))
+            area = wx * wy * (math.pi / 4.0 if light.shape in ("DISK", "ELLIPSE") else 1.0)
+            power *= area
+    gi = 1.0
+    props = getattr(light, "lpv", None)
+    if props is not None and hasattr(props, "gi_intensity"):
+        gi = float(props.gi_intensity)
+    values = np.concatenate([color, [power, gi], matrix.ravel()])
+    if not np.isfinite(values).all():
+        raise ValueError(
+            f"light '{ob.name}': non-finite colour, power, GI intensity or transform "
+            f"(colour {tuple(color)}, power {power}); fix the light or its drivers"
+        )
+    return core.scene.Light(
+        name=ob.name,
+        type=kind,
+        matrix=matrix.copy(),
+        color=color.astype(np.float32),
+        power=power,
+        spot_size=float(getattr(light, "spot_size", math.pi / 4.0)),
+        spot_blend=float(getattr(light, "spot_blend", 0.15)),
+        radius=float(getattr(light, "shadow_soft_size", 0.0)),
+        size=size,
+        gi_intensity=gi,
+        cast_shadow=bool(getattr(light, "use_shadow", True)),
+    )
+
+
+# ----------------------------------------------------------------------------------- camera
+
+
+def render_resolution(scene: bpy.types.Scene) -> tuple[int, int]:
+    """Output size in pixels: resolution x percentage / 100 (Blender rounds down, at least 1)."""
+    r = scene.render
+    pct = r.resolution_percentage / 100.0
+    return max(1, int(r.resolution_x * pct)), max(1, int(r.resolution_y * pct))
+
+
+def camera_from_scene(
+    depsgraph: bpy.types.Depsgraph,
+    scene: bpy.types.Scene,
+    resolution: tuple[int, int] | None = None,
+) -> core.scene.Camera:
+    """The scene camera: view = inverse of its scale-free world matrix, Blender's projection."""
+    ob = scene.camera
+    if ob is None:
+        raise ValueError(f"scene '{scene.name}' has no active camera")
+    if not ob.is_evaluated:
+        ob = ob.evaluated_get(depsgraph)
+    if resolution is None:
+        width, height = render_resolution(scene)
+    else:
+        try:
+            width, height = (int(v) for v in resolution)
+        except (TypeError, ValueError):
+            raise ValueError(f"resolution must be (width, height), got {resolution!r}") from None
+    if width < 1 or height < 1:
+        raise ValueError(f"resolution must be positive, got {width}x{height}")
+    mw = ob.matrix_world
+    if not np.isfinite(np.array(mw)).all():
+        raise ValueError(f"camera '{ob.name}': non-finite world matrix")
+    loc, rot, scale = mw.decompose()
+    if min(abs(s) for s in scale) < 1e-12:
+        raise ValueError(f"camera '{ob.name}': zero scale, its orientation is undefined")
+    rigid = np.eye(4)
+    rigid[:3, :3] = np.array(rot.to_matrix())
+    rigid[:3, 3] = loc[:]
+    view = np.linalg.inv(rigid)
+    r = scene.render
+    proj = np.array(
+        ob.calc_matrix_camera(
+            depsgraph, x=width, y=height, scale_x=r.pixel_aspect_x, scale_y=r.pixel_aspect_y
+        ),
+        np.float64,
+    )
+    if not np.isfinite(proj).all():
+        raise ValueError(f"camera '{ob.name}': non-finite projection (check lens and clipping)")
+    return core.scene.Camera(view=view, projection=proj, resolution=(width, height))
+
+
+# --------------------------------------------------------------------------------- settings
+
+
+def settings_from_scene(
+    scene: bpy.types.Scene, overrides: dict | None = None
+) -> core.scene.GISettings:
+    """GISettings from ``scene.lpv`` (when registered), then ``overrides`` on top."""
+    settings = core.scene.GISettings()
+    props = getattr(scene, "lpv", None)
+    if props is not None:
+        values = {k: getattr(props, k) for k in SCENE_SETTINGS if hasattr(props, k)}
+        settings = settings.updated(**values)
+    if overrides:
+        settings = settings.updated(**overrides)
+    return settings

@@ -1,0 +1,1 @@
+"""Developer tools (wheel fetching, extension build); not shipped in the extension zip."""
