@@ -221,6 +221,11 @@ def main(argv: list[str] | None = None) -> int:
         p.error("no scenes given")
     if args.samples < 1 or args.bounces < 0:
         p.error("need --samples >= 1 and --bounces >= 0")
+    scenes, _ = _import_bpy_side()
+    known = set(scenes.SCENES) | set(scenes.BUILDERS)
+    unknown = [n for n in names if n not in known]
+    if unknown:
+        p.error(f"unknown scene(s) {', '.join(unknown)}; known: {', '.join(sorted(known))}")
     t0 = time.perf_counter()
     if args.cached:
         results = [_cached_one(args.out, n, args.samples, args.bounces, args.resolution)

@@ -1,0 +1,380 @@
+"""The team's test and demo scenes, built with bpy data calls (no operators in loops).
+
+Every builder by default starts a fresh file with ``bpy.ops.wm.read_homefile(use_empty=True)``
+(add-ons stay registered) and builds into its one scene, which is then the context scene;
+with ``new_file=False`` it adds a new scene to the current file instead (made the window's
+scene when there is a window; headless, pass it to the renderer explicitly).
+
+Conventions: metres, Z up; purely diffuse Lambertian materials (Diffuse BSDF with roughness 0
+by default, or Principled BSDF with Specular IOR Level 0 / roughness 1: Cycles puts all the
+light of either into the Diffuse passes, measured Combined == (DiffDir + DiffInd) x DiffCol);
+a black world (light comes from the lamps only); lights with shadow_soft_size 0 and sun
+angle 0 (hard shadows), invisible to camera rays; a camera with sensor_fit HORIZONTAL; render
+engine Cycles at the given resolution, 100 %. Wall quads face into rooms, boxes face out.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import bpy
+from mathutils import Vector
+
+__all__ = [
+    "BUILDERS",
+    "SCENES",
+    "build",
+    "cornell_box",
+    "point_room",
+    "save_scene",
+    "sun_yard",
+]
+
+Color = tuple[float, float, float]
+WHITE: Color = (0.73, 0.73, 0.73)
+RED: Color = (0.63, 0.065, 0.05)
+GREEN: Color = (0.14, 0.45, 0.091)
+
+# Face winding of an axis-aligned box with corners 0..7 (bit 0: x, bit 1: y, bit 2: z) laid
+# out as below; every quad is counter-clockwise seen from outside (normal points out).
+# 0 (x0,y0,z0) 1 (x1,y0,z0) 2 (x1,y1,z0) 3 (x0,y1,z0), 4..7 the same at z1.
+_BOX_FACES = {
+    "-z": (0, 3, 2, 1),
+    "+z": (4, 5, 6, 7),
+    "-y": (0, 1, 5, 4),
+    "+y": (2, 3, 7, 6),
+    "-x": (3, 0, 4, 7),
+    "+x": (1, 2, 6, 5),
+}
+
+
+def _box_verts(lo: Sequence[float], hi: Sequence[float]) -> list[tuple[float, float, float]]:
+    (x0, y0, z0), (x1, y1, z1) = lo, hi
+    return [
+        (x0, y0, z0), (x1, y0, z0), (x1, y1, z0), (x0, y1, z0),
+        (x0, y0, z1), (x1, y0, z1), (x1, y1, z1), (x0, y1, z1),
+    ]
+
+
+def _box(
+    lo: Sequence[float], hi: Sequence[float], faces: Sequence[str] = tuple(_BOX_FACES),
+    inward: bool = False,
+) -> tuple[list, list]:
+    """Vertices and quads of a box (a subset of its faces), normals out or in."""
+    quads = [_BOX_FACES[f][::-1] if inward else _BOX_FACES[f] for f in faces]
+    return _box_verts(lo, hi), quads
+
+
+def _merge(*parts: tuple[list, list]) -> tuple[list, list]:
+    verts: list = []
+    faces: list = []
+    for v, f in parts:
+        base = len(verts)
+        verts.extend(v)
+        faces.extend(tuple(i + base for i in q) for q in f)
+    return verts, faces
+
+
+def _material(name: str, color: Color, shader: str) -> bpy.types.Material:
+    """A purely diffuse material: Diffuse BSDF (roughness 0: Lambert) or zero-specular
+    Principled BSDF."""
+    mat = bpy.data.materials.new(name)
+    mat.diffuse_color = (*color, 1.0)  # solid-mode viewport colour
+    tree = mat.node_tree
+    if tree is None:  # pragma: no cover - Blender < 5 needs nodes switched on
+        mat.use_nodes = True
+        tree = mat.node_tree
+    tree.nodes.clear()
+    out = tree.nodes.new("ShaderNodeOutputMaterial")
+    out.location = (300, 0)
+    if shader == "DIFFUSE":
+        bsdf = tree.nodes.new("ShaderNodeBsdfDiffuse")
+        bsdf.inputs["Color"].default_value = (*color, 1.0)
+        bsdf.inputs["Roughness"].default_value = 0.0
+    elif shader == "PRINCIPLED":
+        bsdf = tree.nodes.new("ShaderNodeBsdfPrincipled")
+        bsdf.inputs["Base Color"].default_value = (*color, 1.0)
+        bsdf.inputs["Roughness"].default_value = 1.0
+        bsdf.inputs["Metallic"].default_value = 0.0
+        bsdf.inputs["Specular IOR Level"].default_value = 0.0
+    else:
+        raise ValueError(f"shader must be 'DIFFUSE' or 'PRINCIPLED', not {shader!r}")
+    tree.links.new(bsdf.outputs[0], out.inputs["Surface"])
+    return mat
+
+
+def _mesh_object(
+    scene: bpy.types.Scene, name: str, geometry: tuple[list, list],
+    material: bpy.types.Material, location: Sequence[float] = (0, 0, 0),
+    rotation_z_deg: float = 0.0,
+) -> bpy.types.Object:
+    verts, faces = geometry
+    mesh = bpy.data.meshes.new(name)
+    mesh.from_pydata(verts, [], faces)
+    mesh.validate()
+    mesh.update()
+    mesh.materials.append(material)
+    ob = bpy.data.objects.new(name, mesh)
+    ob.location = location
+    ob.rotation_euler = (0.0, 0.0, math.radians(rotation_z_deg))
+    scene.collection.objects.link(ob)
+    return ob
+
+
+def _look_at(ob: bpy.types.Object, target: Sequence[float]) -> None:
+    direction = Vector(target) - Vector(ob.location)
+    ob.rotation_euler = direction.to_track_quat("-Z", "Y").to_euler()
+
+
+def _camera(
+    scene: bpy.types.Scene, location: Sequence[float], target: Sequence[float],
+    lens_mm: float, name: str = "Camera",
+) -> bpy.types.Object:
+    cam = bpy.data.cameras.new(name)
+    cam.type = "PERSP"
+    cam.sensor_fit = "HORIZONTAL"
+    cam.sensor_width = 36.0
+    cam.sensor_height = 24.0
+    cam.lens = lens_mm
+    cam.clip_start = 0.05
+    cam.clip_end = 200.0
+    ob = bpy.data.objects.new(name, cam)
+    ob.location = location
+    _look_at(ob, target)
+    scene.collection.objects.link(ob)
+    scene.camera = ob
+    return ob
+
+
+def _light(
+    scene: bpy.types.Scene, name: str, kind: str, energy: float,
+    location: Sequence[float], rotation_deg: Sequence[float] = (0, 0, 0), **settings,
+) -> bpy.types.Object:
+    light = bpy.data.lights.new(name, kind)
+    light.energy = energy
+    light.color = (1.0, 1.0, 1.0)
+    light.use_shadow = True
+    if kind == "SUN":
+        light.angle = 0.0
+    else:
+        light.shadow_soft_size = 0.0
+    for key, value in settings.items():
+        setattr(light, key, value)
+    ob = bpy.data.objects.new(name, light)
+    ob.location = location
+    ob.rotation_euler = tuple(math.radians(a) for a in rotation_deg)
+    ob.visible_camera = False  # no emitter in Combined: it holds diffuse light only
+    scene.collection.objects.link(ob)
+    return ob
+
+
+def _black_world() -> bpy.types.World:
+    world = bpy.data.worlds.new("LPV Black")
+    world.color = (0.0, 0.0, 0.0)
+    tree = world.node_tree
+    if tree is None:  # pragma: no cover - Blender < 5
+        world.use_nodes = True
+        tree = world.node_tree
+    bg = tree.nodes.get("Background")
+    if bg is not None:
+        bg.inputs["Color"].default_value = (0.0, 0.0, 0.0, 1.0)
+        bg.inputs["Strength"].default_value = 0.0
+    return world
+
+
+def _new_scene(name: str, resolution: Sequence[int], new_file: bool) -> bpy.types.Scene:
+    if new_file:
+        bpy.ops.wm.read_homefile(use_empty=True)
+        scene = bpy.context.scene
+        scene.name = name
+    else:
+        scene = bpy.data.scenes.new(name)
+        window = getattr(bpy.context, "window", None)
+        if window is not None:
+            window.scene = scene
+    scene.unit_settings.system = "METRIC"
+    scene.unit_settings.scale_length = 1.0
+    scene.world = _black_world()
+    r = scene.render
+    r.engine = "CYCLES"
+    scene.cycles.device = "CPU"
+    r.resolution_x, r.resolution_y = (int(v) for v in resolution)
+    r.resolution_percentage = 100
+    r.pixel_aspect_x = r.pixel_aspect_y = 1.0
+    scene.frame_set(1)
+    return scene
+
+
+def _facts(scene: bpy.types.Scene, lights: Sequence[bpy.types.Object]) -> dict:
+    return {
+        "scene": scene.name,
+        "camera": scene.camera.name,
+        "lights": [ob.name for ob in lights],
+        "objects": sorted(ob.name for ob in scene.objects if ob.type == "MESH"),
+        "resolution": (scene.render.resolution_x, scene.render.resolution_y),
+    }
+
+
+def cornell_box(
+    light: str = "SPOT", resolution: Sequence[int] = (128, 128), *, shader: str = "DIFFUSE",
+    new_file: bool = True,
+) -> dict:
+    """Cornell box 2 m wide/deep/high (x, y in [-1, 1], z in [0, 2]), open at the front (-y):
+    red left wall, green right wall, white floor/ceiling/back, a short and a tall white block;
+    camera at (0, -3.9, 1) looking in (+y).
+
+    light: SPOT (300 W at z 1.95 pointing down, 100 deg cone, blend 0.15), POINT (150 W at
+    z 1.6), AREA (0.5 m square, 100 W, z 1.98, facing down) or SUN (4 W/m^2 tilted 20 deg
+    towards the camera through a 1 m hole in the ceiling). Returns the scene's facts.
+    """
+    light = light.upper()
+    if light not in ("SPOT", "POINT", "SUN", "AREA"):
+        raise ValueError(f"light must be SPOT, POINT, SUN or AREA, not {light!r}")
+    scene = _new_scene(f"cornell_{light.lower()}", resolution, new_file)
+    white = _material("White", WHITE, shader)
+    red = _material("Red", RED, shader)
+    green = _material("Green", GREEN, shader)
+    lo, hi = (-1.0, -1.0, 0.0), (1.0, 1.0, 2.0)
+    _mesh_object(scene, "Floor", _box(lo, hi, ["-z"], inward=True), white)
+    _mesh_object(scene, "BackWall", _box(lo, hi, ["+y"], inward=True), white)
+    _mesh_object(scene, "LeftWall", _box(lo, hi, ["-x"], inward=True), red)
+    _mesh_object(scene, "RightWall", _box(lo, hi, ["+x"], inward=True), green)
+    if light == "SUN":
+        # Ceiling with a 1 m hole (x in [-0.5, 0.5], y in [-0.2, 0.8]): four quads facing down.
+        hx0, hx1, hy0, hy1 = -0.5, 0.5, -0.2, 0.8
+        z = 2.0
+        rects = [(-1, -1, 1, hy0), (-1, hy1, 1, 1), (-1, hy0, hx0, hy1), (hx1, hy0, 1, hy1)]
+        verts, faces = [], []
+        for x0, y0, x1, y1 in rects:
+            b = len(verts)
+            verts += [(x0, y0, z), (x1, y0, z), (x1, y1, z), (x0, y1, z)]
+            faces.append((b, b + 3, b + 2, b + 1))  # normal -z (into the box)
+        _mesh_object(scene, "Ceiling", (verts, faces), white)
+    else:
+        _mesh_object(scene, "Ceiling", _box(lo, hi, ["+z"], inward=True), white)
+    _mesh_object(
+        scene, "ShortBlock", _box((-0.3, -0.3, 0.0), (0.3, 0.3, 0.6)), white,
+        location=(0.33, -0.3, 0.0), rotation_z_deg=-17.0,
+    )
+    _mesh_object(
+        scene, "TallBlock", _box((-0.3, -0.3, 0.0), (0.3, 0.3, 1.2)), white,
+        location=(-0.35, 0.3, 0.0), rotation_z_deg=17.0,
+    )
+    if light == "SPOT":
+        lamp = _light(scene, "Spot", "SPOT", 300.0, (0.0, 0.0, 1.95),
+                      spot_size=math.radians(100.0), spot_blend=0.15)
+    elif light == "POINT":
+        lamp = _light(scene, "Point", "POINT", 150.0, (0.0, 0.0, 1.6))
+    elif light == "AREA":
+        lamp = _light(scene, "Area", "AREA", 100.0, (0.0, 0.0, 1.98), shape="SQUARE", size=0.5)
+    else:
+        lamp = _light(scene, "Sun", "SUN", 4.0, (0.0, 0.3, 4.0), rotation_deg=(-20.0, 0.0, 12.0))
+    _camera(scene, (0.0, -3.9, 1.0), (0.0, 0.0, 1.0), lens_mm=50.0)
+    return _facts(scene, [lamp])
+
+
+def point_room(resolution: Sequence[int] = (128, 128), *, shader: str = "DIFFUSE",
+               new_file: bool = True) -> dict:
+    """A closed 4 x 5 x 3 m room (x in [-2, 2], y in [-2.5, 2.5]) with a blue accent wall,
+    a table, sofa, bookshelf and cabinet, lit by one 400 W point light near the ceiling;
+    camera inside a corner. Returns the scene's facts."""
+    scene = _new_scene("point_room", resolution, new_file)
+    wall = _material("Wall", (0.75, 0.73, 0.70), shader)
+    accent = _material("Accent", (0.20, 0.35, 0.60), shader)
+    ceiling = _material("Ceiling", (0.80, 0.80, 0.80), shader)
+    floor = _material("Floor", (0.45, 0.30, 0.20), shader)
+    wood = _material("Wood", (0.55, 0.40, 0.25), shader)
+    fabric = _material("Fabric", (0.60, 0.15, 0.12), shader)
+    shelf_mat = _material("Shelf", (0.25, 0.50, 0.25), shader)
+    lo, hi = (-2.0, -2.5, 0.0), (2.0, 2.5, 3.0)
+    _mesh_object(scene, "Floor", _box(lo, hi, ["-z"], inward=True), floor)
+    _mesh_object(scene, "Ceiling", _box(lo, hi, ["+z"], inward=True), ceiling)
+    _mesh_object(scene, "Walls", _box(lo, hi, ["-x", "-y", "+x"], inward=True), wall)
+    _mesh_object(scene, "AccentWall", _box(lo, hi, ["+y"], inward=True), accent)
+    legs = [
+        _box((x - 0.03, y - 0.03, 0.0), (x + 0.03, y + 0.03, 0.72))
+        for x in (-0.55, 0.55) for y in (-0.35, 0.35)
+    ]
+    table = _merge(_box((-0.6, -0.4, 0.72), (0.6, 0.4, 0.77)), *legs)
+    _mesh_object(scene, "Table", table, wood, location=(0.3, 0.4, 0.0), rotation_z_deg=10.0)
+    sofa = _merge(_box((-1.0, -0.45, 0.0), (1.0, 0.45, 0.45)),
+                  _box((-1.0, 0.25, 0.45), (1.0, 0.45, 0.95)))
+    _mesh_object(scene, "Sofa", sofa, fabric, location=(-0.2, 1.9, 0.0))
+    _mesh_object(scene, "Bookshelf", _box((-0.45, -0.175, 0.0), (0.45, 0.175, 2.0)), shelf_mat,
+                 location=(-1.8, -0.5, 0.0), rotation_z_deg=90.0)
+    _mesh_object(scene, "Cabinet", _box((-0.4, -0.25, 0.0), (0.4, 0.25, 0.9)), wood,
+                 location=(1.7, 1.2, 0.0), rotation_z_deg=-90.0)
+    _mesh_object(scene, "Box", _box((-0.2, -0.2, 0.0), (0.2, 0.2, 0.4)), wall,
+                 location=(1.0, -0.9, 0.0), rotation_z_deg=30.0)
+    lamp = _light(scene, "Point", "POINT", 400.0, (0.0, 0.3, 2.4))
+    _camera(scene, (1.7, -2.25, 1.6), (-0.6, 1.0, 0.7), lens_mm=20.0)
+    return _facts(scene, [lamp])
+
+
+def sun_yard(resolution: Sequence[int] = (128, 128), *, shader: str = "DIFFUSE",
+             new_file: bool = True) -> dict:
+    """A 40 m ground plane with five coloured boxes, a 4 W/m^2 sun at 40 deg elevation
+    (azimuth 30 deg), camera outside looking down at the group. Returns the scene's facts."""
+    scene = _new_scene("sun_yard", resolution, new_file)
+    ground = _material("Ground", (0.5, 0.5, 0.5), shader)
+    red = _material("Red", (0.7, 0.08, 0.06), shader)
+    white = _material("White", (0.8, 0.8, 0.8), shader)
+    green = _material("Green", (0.12, 0.5, 0.1), shader)
+    blue = _material("Blue", (0.1, 0.2, 0.65), shader)
+    yellow = _material("Yellow", (0.75, 0.65, 0.1), shader)
+    plane = ([(-20.0, -20.0, 0.0), (20.0, -20.0, 0.0), (20.0, 20.0, 0.0), (-20.0, 20.0, 0.0)],
+             [(0, 1, 2, 3)])
+    _mesh_object(scene, "Ground", plane, ground)
+    boxes = [
+        ("RedBox", (2.0, 2.0, 2.0), (0.0, 0.0), 20.0, red),
+        ("WhiteTower", (1.0, 1.0, 3.0), (2.6, 1.6), 0.0, white),
+        ("GreenWall", (4.0, 0.3, 1.5), (-1.8, 2.6), -10.0, green),
+        ("BlueBox", (1.2, 1.2, 0.8), (-2.4, -0.8), 35.0, blue),
+        ("YellowSlab", (1.6, 0.9, 0.4), (1.6, -2.0), -25.0, yellow),
+    ]
+    for name, (sx, sy, sz), (x, y), rot, mat in boxes:
+        _mesh_object(scene, name, _box((-sx / 2, -sy / 2, 0.0), (sx / 2, sy / 2, sz)), mat,
+                     location=(x, y, 0.0), rotation_z_deg=rot)
+    # Local -Z rotated 50 deg about X travels 40 deg below the horizon, then turned 30 deg.
+    lamp = _light(scene, "Sun", "SUN", 4.0, (0.0, 0.0, 10.0), rotation_deg=(50.0, 0.0, 30.0))
+    _camera(scene, (8.5, -9.0, 5.5), (0.0, 0.3, 0.8), lens_mm=35.0)
+    return _facts(scene, [lamp])
+
+
+BUILDERS: dict[str, Callable[..., dict]] = {
+    "cornell_box": cornell_box,
+    "point_room": point_room,
+    "sun_yard": sun_yard,
+}
+
+# Named scenes of the team (tools/make_references.py): name -> (builder, keyword arguments).
+SCENES: dict[str, tuple[str, dict]] = {
+    "cornell_spot": ("cornell_box", {"light": "SPOT"}),
+    "cornell_point": ("cornell_box", {"light": "POINT"}),
+    "cornell_sun": ("cornell_box", {"light": "SUN"}),
+    "cornell_area": ("cornell_box", {"light": "AREA"}),
+    "point_room": ("point_room", {}),
+    "sun_yard": ("sun_yard", {}),
+}
+
+
+def build(name: str, **kw) -> dict:
+    """Build a named scene (a key of SCENES) or call a builder (a key of BUILDERS)."""
+    if name in SCENES:
+        builder, defaults = SCENES[name]
+        return BUILDERS[builder](**{**defaults, **kw})
+    if name in BUILDERS:
+        return BUILDERS[name](**kw)
+    raise KeyError(f"unknown scene {name!r}; known: {sorted(set(SCENES) | set(BUILDERS))}")
+
+
+def save_scene(builder_name: str, path: str | Path, **kw) -> dict:
+    """Build a scene (see :func:`build`) and save it as a .blend copy (the session's own file
+    path is left alone). Returns the builder's facts plus "path"."""
+    facts = build(builder_name, **kw)
+    path = Path(path).resolve()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    bpy.ops.wm.save_as_mainfile(filepath=str(path), copy=True, check_existing=False)
+    return {**facts, "path": str(path)}
