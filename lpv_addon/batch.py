@@ -97,7 +97,7 @@ def _write_json_atomic(path: Path, data: dict) -> None:
     os.replace(tmp, path)
 
 
-def open_scene(args) -> "object":
+def open_scene(args) -> object:
     """Load the .blend (or build the demo) and return the bpy scene to render."""
     import bpy
 

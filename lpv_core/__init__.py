@@ -5,7 +5,7 @@ Kaplanyan & Dachsbacher, "Cascaded Light Propagation Volumes for Real-Time Indir
 Illumination", I3D 2010 [KD10].
 """
 
-from . import (  # noqa: F401
+from . import (
     deferred,
     direct,
     engine,

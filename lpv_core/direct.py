@@ -54,9 +54,7 @@ def visibility(shadow: ShadowMap, positions: np.ndarray, normals: np.ndarray) ->
         return vis
     res = shadow.resolution
     light = shadow.light
-    if light.type == "SUN":
-        face_of = np.zeros(m, int)
-    elif len(shadow.views) == 1:
+    if light.type == "SUN" or len(shadow.views) == 1:
         face_of = np.zeros(m, int)
     else:
         rel = positions - light.position

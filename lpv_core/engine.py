@@ -137,7 +137,7 @@ class Engine:
 
 def auto_iterations(resolution: int) -> int:
     """Default propagation steps: KD10 uses 8 on a 32^3 cascade, i.e. resolution / 4."""
-    return max(1, int(round(resolution / 4)))
+    return max(1, round(resolution / 4))
 
 
 def _no_gi_reason(light, global_intensity: float) -> str:

@@ -89,7 +89,7 @@ class Camera:
         resolution: tuple[int, int] = (256, 256),
         near: float = 0.05,
         far: float = 1000.0,
-    ) -> "Camera":
+    ) -> Camera:
         """A perspective camera at ``eye`` looking at ``target`` (vertical field of view)."""
         view = look_at_matrix(eye, target, up)
         aspect = resolution[0] / resolution[1]
@@ -114,7 +114,7 @@ class GISettings:
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)
 
-    def updated(self, **changes) -> "GISettings":
+    def updated(self, **changes) -> GISettings:
         """A copy with ``changes`` applied; unknown keys raise ValueError naming the key."""
         known = {f.name: f for f in dataclasses.fields(self)}
         values = {}

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from lpv_core import demo, deferred, engine, grid, injection, lookup, propagation, sh
+from lpv_core import deferred, demo, engine, grid, injection, lookup, propagation, sh
 from lpv_core.scene import GISettings, make_scene
 
 

@@ -15,7 +15,7 @@ from conftest import CACHE, ROOT
 from lpv_core import exr
 
 sys.path.insert(0, str(ROOT / "tools"))
-from make_references import ensure_reference  # noqa: E402
+from make_references import ensure_reference
 
 RES = (96, 96)
 SAMPLES = 512
