@@ -140,6 +140,26 @@ def _coerce(key: str, value, current):
     return value
 
 
+AREA_TYPES = ("CLIP", "TRANSITION")
+
+
+@dataclass
+class Area:
+    """A GI area: a box, the image of [-1, 1]^3 under ``matrix`` (like an Empty's cube).
+
+    CLIP: light does not propagate across the box's boundary. TRANSITION: GI inside the box is
+    scaled by ``intensity`` and tinted by ``tint``, blending into the outside over ``falloff``
+    metres.
+    """
+
+    name: str
+    type: str
+    matrix: np.ndarray
+    falloff: float = 0.5
+    intensity: float = 1.0
+    tint: np.ndarray = field(default_factory=lambda: np.ones(3, np.float32))
+
+
 @dataclass
 class Scene:
     """World-space triangles with per-corner normals, materials, lights and a camera."""
@@ -154,6 +174,18 @@ class Scene:
     object_index: np.ndarray | None = None  # (T,) int32 into ``object_names``
     object_names: list[str] = field(default_factory=list)
     dropped: dict = field(default_factory=dict)
+    # Per-triangle GI flags (None: all True): bounces light / blocks propagation / receives GI.
+    caster: np.ndarray | None = None
+    occluder: np.ndarray | None = None
+    receiver: np.ndarray | None = None
+    areas: list[Area] = field(default_factory=list)
+
+    def flag(self, name: str) -> np.ndarray:
+        """Per-triangle bool array for 'caster', 'occluder' or 'receiver' (default all True)."""
+        value = getattr(self, name)
+        if value is None:
+            return np.ones(self.triangle_count, bool)
+        return np.asarray(value, bool)
 
     @property
     def triangle_count(self) -> int:
@@ -194,6 +226,10 @@ def make_scene(
     settings=None,
     object_index=None,
     object_names=None,
+    caster=None,
+    occluder=None,
+    receiver=None,
+    areas=None,
 ) -> Scene:
     """Build a validated Scene from loose arrays: bad triangles are dropped and counted.
 
@@ -238,7 +274,16 @@ def make_scene(
         out = (mat < 0) | (mat >= len(materials))
         mat = np.where(out, len(materials), mat).astype(np.int32)
         materials.append(Material("default"))
+    flags = {}
+    for fname, fvalue in (("caster", caster), ("occluder", occluder), ("receiver", receiver)):
+        if fvalue is not None:
+            arr = np.asarray(fvalue, bool).reshape(-1)
+            if arr.shape != (t,):
+                raise ValueError(f"{fname} flags have shape {arr.shape}, expected ({t},)")
+            flags[fname] = np.ascontiguousarray(arr[keep])
     return Scene(
+        **flags,
+        areas=list(areas or []),
         positions=np.ascontiguousarray(pos[keep]),
         normals=np.ascontiguousarray(nrm[keep]),
         material_index=np.ascontiguousarray(mat[keep]),
