@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import direct, lookup
+from . import areas, direct, lookup
 from .engine import Engine, LPVResult, Stats, Timer
 from .scene import Scene
 
@@ -49,7 +49,16 @@ def render(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats | None = N
             diff_dir[mask] = e_dir / np.pi
         if lpv.values is not None:
             with Timer(stats, "lookup"):
-                e_ind = lookup.irradiance(lpv.grid, lpv.values, pos, nrm)
+                # Pixels of non-receivers (Object.lpv.gi_receiver off) get no indirect light.
+                recv = np.ones(pos.shape[0], bool) if frame.receiver is None \
+                    else frame.receiver[mask]
+                if not recv.all():
+                    stats.skip("lookup", f"{int((~recv).sum())} pixels", "gi_receiver is off")
+                e_ind = np.zeros((pos.shape[0], 3))
+                e_ind[recv] = lookup.irradiance(lpv.grid, lpv.values, pos[recv], nrm[recv],
+                                                angular=scene.settings.angular)
+                if areas.has_transition(scene.areas):
+                    e_ind *= areas.transition_factor(scene.areas, pos)
                 diff_ind[mask] = e_ind / np.pi
         else:
             stats.skip("lookup", "all pixels", "no LPV (no GI-contributing light or geometry)")

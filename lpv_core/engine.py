@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import injection, propagation
+from . import areas, geometry_volume, injection, propagation
 from .grid import Grid, fit_grid
 from .scene import Scene
 
@@ -59,6 +59,8 @@ class LPVResult:
     values: np.ndarray | None  # (R, R, R, 3, 4) float32, or None when there is no GI
     per_light: dict  # light name -> propagated grid (unweighted)
     stats: Stats
+    # light name -> (positions (N, 3), flux (N, 3)): a subsample of its VPLs (debug views)
+    vpls: dict = field(default_factory=dict)
 
 
 class Engine:
@@ -66,6 +68,7 @@ class Engine:
 
     def __init__(self, raster=None):
         self._raster = raster
+        self._gl = None  # GLBackend on the rasteriser's context, made on first use
 
     @property
     def raster(self):
@@ -75,10 +78,44 @@ class Engine:
             self._raster = Rasterizer()
         return self._raster
 
+    def backend(self, settings, stats: Stats | None = None):
+        """The compute backend for ``settings.backend``: "numpy", "gl" (moderngl compute
+        shaders, gl_backend.py) or "auto" (the faster of the two on this machine, measured
+        once per process on a small grid). Each has inject, propagate, irradiance, discard."""
+        name = getattr(settings, "backend", "numpy")
+        if name == "auto":
+            from . import gl_backend
+
+            try:
+                gl = self._gl_backend()
+            except Exception:  # noqa: BLE001 - no usable GL context: auto falls back to numpy
+                gl = None
+            choice = gl_backend.auto_backend(gl) if gl is not None else {"backend": "numpy"}
+            name = choice["backend"]
+            if stats is not None:
+                stats.info["backend_auto"] = dict(choice)
+        if name == "gl":
+            be = self._gl_backend()
+        elif name == "numpy":
+            be = NUMPY_BACKEND
+        else:
+            raise ValueError(f"backend must be 'numpy', 'gl' or 'auto', not {name!r}")
+        if stats is not None:
+            stats.info["backend"] = be.name
+        return be
+
+    def _gl_backend(self):
+        if self._gl is None:
+            from .gl_backend import GLBackend
+
+            self._gl = GLBackend(self.raster.ctx)
+        return self._gl
+
     def upload(self, scene: Scene, stats: Stats) -> None:
         with Timer(stats, "upload"):
             self.raster.upload(scene.positions, scene.normals, scene.albedo_per_triangle(),
-                               scene.reflectance_per_triangle())
+                               scene.reflectance_per_triangle(),
+                               receiver=None if scene.receiver is None else scene.flag("receiver"))
 
     def update(self, scene: Scene, stats: Stats | None = None) -> LPVResult:
         """RSM -> injection -> propagation -> combine for every light that contributes GI."""
@@ -109,34 +146,146 @@ class Engine:
             stats.ms["lpv_update"] = (time.perf_counter() - t0) * 1000.0
             return LPVResult(grid, None, {}, stats)
         self.upload(scene, stats)
-        iterations = settings.iterations or auto_iterations(settings.grid_resolution)
+        backend = self.backend(settings, stats)
+        iterations = settings.iterations or auto_iterations(settings.grid_resolution,
+                                                            settings.angular)
+        visibility = propagation_visibility(scene, grid, stats)
+        vpl_sample = {}
         per_light = {}
-        combined = grid.zeros()
         vpl_count = 0
         run_iterations = []
         for light in active:
             with Timer(stats, "rsm"):
                 rsm = render_rsm(self.raster, light, (lo, hi), settings.rsm_resolution)
             vpl_count += rsm.count
-            with Timer(stats, "injection"):
-                injected = injection.inject(grid, rsm.position, rsm.normal, rsm.flux)
-            with Timer(stats, "propagation"):
-                prop = propagation.propagate(injected, iterations,
-                                             reprojection=settings.reprojection)
-            run_iterations.append(prop.iterations)
+            keep = slice(None, None, max(1, rsm.count // VPL_SAMPLE))
+            vpl_sample[light.name] = (rsm.position[keep].astype(np.float32),
+                                      rsm.flux[keep].astype(np.float32))
+            total = None
+            for group in direction_groups(rsm.normal, settings.direction_groups):
+                with Timer(stats, "injection"):
+                    injected = backend.inject(grid, rsm.position[group], rsm.normal[group],
+                                              rsm.flux[group])
+                with Timer(stats, "propagation"):
+                    prop = backend.propagate(injected, iterations,
+                                             reprojection=settings.reprojection,
+                                             angular=settings.angular, visibility=visibility)
+                    backend.discard(injected)
+                run_iterations.append(prop.iterations)
+                with Timer(stats, "combine"):
+                    total = prop.values if total is None else total + prop.values
             with Timer(stats, "combine"):
-                per_light[light.name] = prop.values
-                combined += np.float32(light.gi_intensity) * prop.values
+                per_light[light.name] = total if total is not None else grid.zeros()
         with Timer(stats, "combine"):
-            combined *= np.float32(settings.intensity)
+            combined = combine(grid, per_light, active, settings.intensity)
         stats.info["vpls"] = vpl_count
         stats.info["iterations"] = run_iterations
         stats.ms["lpv_update"] = (time.perf_counter() - t0) * 1000.0
-        return LPVResult(grid, combined, per_light, stats)
+        return LPVResult(grid, combined, per_light, stats, vpl_sample)
 
 
-def auto_iterations(resolution: int) -> int:
-    """Default propagation steps: KD10 uses 8 on a 32^3 cascade, i.e. resolution / 4."""
+def direction_groups(normals: np.ndarray, groups: int) -> list:
+    """Index arrays splitting VPLs by the axis their normal faces most (groups = 6), or one.
+
+    With the maximum-entropy reading (angular="m1") a cell holds one lobe per colour, so light
+    from differently facing surfaces that meets in a cell merges into one broad lobe (the M1
+    closure's crossing-beams error). Propagating each facing separately keeps the lobes apart;
+    propagation is linear in the injected light otherwise, so the sum is the answer.
+    """
+    if groups <= 1 or normals.shape[0] == 0:
+        return [slice(None)]
+    if groups != 6:
+        raise ValueError(f"direction_groups must be 1 or 6, not {groups}")
+    axis = np.argmax(normals @ propagation.AXES.T, axis=1)
+    return [np.nonzero(axis == i)[0] for i in range(6) if np.any(axis == i)]
+
+
+VPL_SAMPLE = 4096  # VPLs per light kept in LPVResult.vpls for debug views
+
+
+class NumpyBackend:
+    """The reference backend: the numpy functions themselves (see Engine.backend)."""
+
+    name = "numpy"
+
+    @staticmethod
+    def inject(*args, **kwargs):
+        return injection.inject(*args, **kwargs)
+
+    @staticmethod
+    def propagate(*args, **kwargs):
+        return propagation.propagate(*args, **kwargs)
+
+    @staticmethod
+    def irradiance(*args, **kwargs):
+        from . import lookup
+
+        return lookup.irradiance(*args, **kwargs)
+
+    @staticmethod
+    def discard(obj) -> None:
+        pass
+
+
+NUMPY_BACKEND = NumpyBackend()
+
+
+def light_weight(light) -> np.ndarray:
+    """(3, 1) float32 per-colour GI weight of a light: gi_intensity x gi_color."""
+    tint = getattr(light, "gi_color", None)
+    tint = np.ones(3) if tint is None else tint
+    return np.float32(light.gi_intensity) * np.asarray(tint, np.float32).reshape(3, 1)
+
+
+def combine(grid: Grid, per_light: dict, lights, intensity: float) -> np.ndarray:
+    """The LPV: sum of per-light propagated grids x light weight, x global intensity.
+    Propagation is linear, so art-direction changes (GI intensity, tint, global intensity)
+    re-combine cached grids without recomputing them."""
+    combined = grid.zeros()
+    for light in lights:
+        values = per_light.get(light.name)
+        if values is not None:
+            combined += light_weight(light) * values
+    combined *= np.float32(intensity)
+    return combined
+
+
+def propagation_visibility(scene: Scene, grid: Grid, stats: Stats | None = None):
+    """(6, R, R, R) factors for what each cell sends towards propagation.AXES[i], or None.
+
+    The one place where every propagation visibility term is combined (multiplied): clip
+    areas (areas.clip_visibility); occlusion terms multiply in here too.
+    """
+    visibility = None
+    if areas.has_clip(scene.areas):
+        visibility = areas.clip_visibility(grid, scene.areas)
+        if stats is not None:
+            stats.info["clip_areas"] = sum(a.type == "CLIP" for a in scene.areas)
+    if scene.settings.occlusion:
+        occluders = scene.flag("occluder")
+        if not occluders.any():
+            if stats is not None:
+                stats.skip("occlusion", "geometry volume", "no occluder in the scene")
+        else:
+            t0 = time.perf_counter()
+            gv = geometry_volume.occluder_visibility(grid, scene.positions[occluders])
+            visibility = gv if visibility is None else visibility * gv
+            if stats is not None:
+                stats.add_ms("geometry_volume", time.perf_counter() - t0)
+    return visibility
+
+
+def auto_iterations(resolution: int, angular: str = "sh") -> int:
+    """Default cap on propagation steps.
+
+    "sh": KD10 runs 8 steps on a 32^3 cascade (resolution / 4): its diffusive transport keeps
+    counting the same light near its source, so more steps only add error. "m1": light moves
+    up to one cell per step and leaves the grid or is absorbed by occluders, so iterate until
+    a step carries < 1e-3 of the injected flux, capped at 3 grid widths (a light path that
+    crosses the grid diagonally and back).
+    """
+    if angular == "m1":
+        return 3 * resolution
     return max(1, round(resolution / 4))
 
 
@@ -146,6 +295,9 @@ def _no_gi_reason(light, global_intensity: float) -> str:
         return "global GI intensity is 0"
     if light.gi_intensity == 0:
         return "GI intensity is 0"
+    tint = getattr(light, "gi_color", None)
+    if tint is not None and float(np.max(np.abs(np.asarray(tint)))) <= 0:
+        return "GI colour is black"
     if light.power <= 0:
         return "power is 0"
     if float(np.max(np.asarray(light.color))) <= 0:

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import sh
+from . import closure, sh
 from .grid import Grid
 from .injection import trilinear_corners
 
@@ -38,11 +38,22 @@ def irradiance(
     positions: np.ndarray,
     normals: np.ndarray,
     offset_cells: float = 0.5,
+    angular: str = "sh",
 ) -> np.ndarray:
-    """Indirect irradiance (M, 3) in W/m^2 at receivers; samples half a cell along the normal."""
+    """Indirect irradiance (M, 3) in W/m^2 at receivers; samples half a cell along the normal.
+
+    ``angular="m1"``: the cell is read as its maximum-entropy lobe (closure.py), and the flux
+    that passed through it becomes irradiance Phi E[max(0, <-n, w>)] / s^2, exact for a beam
+    (Phi / s^2 head-on) and for an isotropic field (Phi / (4 s^2) = pi L).
+    """
     positions = np.asarray(positions, np.float64)
     normals = np.asarray(normals, np.float64)
     coeffs = sample(grid, values, positions + normals * (offset_cells * grid.cell_size))
+    if angular == "m1":
+        held, r, d = closure.moments(coeffs)  # (M, 3), (M, 3), (M, 3, 3)
+        t = -np.einsum("mcx,mx->mc", d, normals)
+        e = held * closure.cosine_expectation(r, t) / (grid.cell_size**2)
+        return np.maximum(e, 0.0)
     lobe = sh.cosine_lobe(-normals)  # light arriving at the receiver travels along -n
     e = np.einsum("mcs,ms->mc", coeffs, lobe)
     e *= REPROJECTION_GAIN / (grid.cell_size**2)

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import sh
+from . import closure, sh
 
 FRONT_SOLID_ANGLE = 4.0 * np.arctan(np.sqrt(11.0) / 33.0)  # 0.4006696846
 SIDE_SOLID_ANGLE = 2.0 * np.arctan(3.0 * np.sqrt(11.0) / 11.0) - np.pi / 3.0  # 0.4234313544
@@ -83,22 +83,113 @@ def _shift_add(dst: np.ndarray, src: np.ndarray, axis_index: int) -> None:
     dst[tuple(lo)] += src[tuple(hi)]
 
 
+ANGULAR_MODELS = ("sh", "m1")
+_M1 = {}
+
+
+def quadrature_directions(q: int = 64) -> np.ndarray:
+    """(q, 3) near-uniform unit directions (Fibonacci sphere), each standing for 4 pi / q sr."""
+    i = np.arange(q) + 0.5
+    z = 1.0 - 2.0 * i / q
+    phi = np.pi * (1.0 + 5.0**0.5) * i
+    rho = np.sqrt(1.0 - z * z)
+    return np.stack([rho * np.cos(phi), rho * np.sin(phi), z], axis=1)
+
+
+M1_DIRECTIONS = 64
+OFFSETS = [(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)]
+
+
+def _m1_tables(q: int = M1_DIRECTIONS):
+    """Bundle directions (q, 3), the mean-cosine cap, and the (q, 27 x 4) advection matrix.
+
+    A bundle moving one cell length along w from a cell spreads over the 27 neighbours with
+    trilinear weights prod_axis (1 - |w_a|) or |w_a| (on the side w_a points to); it arrives as
+    SH Y(w) per unit flux. The lobe cannot be narrower than the bundle spacing sqrt(4 pi / q):
+    kappa <= q / (4 pi), i.e. mean cosine <= coth(k) - 1/k (0.804 for q = 64).
+    """
+    if q not in _M1:
+        dirs = quadrature_directions(q)
+        adv = np.zeros((q, len(OFFSETS), 4))
+        basis = sh.evaluate_basis(dirs)
+        for k, off in enumerate(OFFSETS):
+            w = np.ones(q)
+            for axis in range(3):
+                comp = dirs[:, axis]
+                if off[axis] == 0:
+                    w *= 1.0 - np.abs(comp)
+                else:
+                    w *= np.where(np.sign(comp) == off[axis], np.abs(comp), 0.0)
+            adv[:, k, :] = w[:, None] * basis
+        k_max = q / (4.0 * np.pi)
+        r_max = 1.0 / np.tanh(k_max) - 1.0 / k_max
+        _M1[q] = (dirs.astype(np.float32), adv.reshape(q, -1).astype(np.float32), float(r_max))
+    return _M1[q]
+
+
+def step_m1(values: np.ndarray, visibility: np.ndarray | None = None) -> np.ndarray:
+    """One step with the maximum-entropy reading: the cell's lobe (closure.py) is split into
+    bundles along fixed directions, each advected one cell length semi-Lagrangian, and the
+    arrivals summed as SH moments. Flux is conserved exactly (weights sum to one)."""
+    r = values.shape[0]
+    dirs, adv, r_max = _m1_tables()
+    src = values.reshape(-1, 4)
+    held, mean_cos, d = closure.moments(src)
+    k = closure.kappa(np.minimum(mean_cos, r_max)).astype(np.float32)
+    logits = k[:, None] * (d @ dirs.T - 1.0)
+    logits -= logits.max(axis=1, keepdims=True)
+    bundles = np.exp(logits)
+    bundles *= (held / bundles.sum(axis=1))[:, None]
+    arrivals = (bundles @ adv).reshape(r, r, r, 3, len(OFFSETS), 4)
+    out = np.zeros_like(values)
+    for k_off, off in enumerate(OFFSETS):
+        dst, src_sl = [slice(None)] * 3, [slice(None)] * 3
+        for axis in range(3):
+            if off[axis] == 1:
+                dst[axis], src_sl[axis] = slice(1, None), slice(None, -1)
+            elif off[axis] == -1:
+                dst[axis], src_sl[axis] = slice(None, -1), slice(1, None)
+        sent = arrivals[tuple(src_sl)][..., k_off, :]
+        if visibility is not None:
+            sent = sent * _offset_visibility(visibility, off)[tuple(src_sl)][..., None, None]
+        out[tuple(dst)] += sent
+    return out
+
+
+def _offset_visibility(visibility: np.ndarray, off) -> np.ndarray:
+    """Transmittance towards a neighbour offset: the product over the axis faces it crosses."""
+    v = np.ones(visibility.shape[1:], visibility.dtype)
+    for axis in range(3):
+        if off[axis] == 1:
+            v = v * visibility[2 * axis]
+        elif off[axis] == -1:
+            v = v * visibility[2 * axis + 1]
+    return v
+
+
 def step(values: np.ndarray, visibility: np.ndarray | None = None,
-         reprojection: str = "kd10") -> np.ndarray:
+         reprojection: str = "kd10", angular: str = "sh") -> np.ndarray:
     """One propagation step of an (R, R, R, 3, 4) grid; returns the newly arrived intensity.
 
     ``visibility`` (6, R, R, R) optionally scales what each cell sends towards each axis
-    direction (1 - blocking potential of the face it crosses; occlusion arrives later).
+    direction (1 - blocking potential of the face it crosses). ``angular``: "sh" evaluates the
+    clamped 2-band SH (KD10); "m1" reads the cell as its maximum-entropy lobe and advects it
+    (step_m1; ``reprojection`` unused).
     """
+    if angular == "m1":
+        return step_m1(values, visibility)
     r = values.shape[0]
-    eval_table, reproj_table = tables(reprojection)
     src = values.reshape(-1, 4)
-    face_flux = np.maximum(src @ eval_table, 0.0)  # (M, 30)
-    total = face_flux.sum(axis=1)
-    held = np.maximum(src[:, 0], 0.0) * np.float32(sh.SQRT_4PI)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        scale = np.where(total > held, held / total, 1.0).astype(np.float32)
-    face_flux *= scale[:, None]
+    if angular == "sh":
+        eval_table, reproj_table = tables(reprojection)
+        face_flux = np.maximum(src @ eval_table, 0.0)  # (M, 30)
+        total = face_flux.sum(axis=1)
+        held = np.maximum(src[:, 0], 0.0) * np.float32(sh.SQRT_4PI)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            scale = np.where(total > held, held / total, 1.0).astype(np.float32)
+        face_flux *= scale[:, None]
+    else:
+        raise ValueError(f"angular must be one of {ANGULAR_MODELS}, not {angular!r}")
     face_flux = face_flux.reshape(r, r, r, 3, 6, 5)
     out = np.zeros_like(values)
     for i in range(6):
@@ -126,9 +217,14 @@ def propagate(
     min_fraction: float = 1e-3,
     visibility: np.ndarray | None = None,
     reprojection: str = "kd10",
+    angular: str = "sh",
+    occlude_first_step: bool = False,
 ) -> PropagationResult:
     """Accumulate ``iterations`` propagation steps, stopping once a step carries less than
-    ``min_fraction`` of the injected flux (light moves one cell per step)."""
+    ``min_fraction`` of the injected flux (light moves one cell per step).
+
+    The first step ignores ``visibility`` unless ``occlude_first_step`` (KD10: injected light
+    sits next to the surface it left, which must not block it)."""
     acc = injected.astype(np.float32, copy=True)
     cur = injected
     total0 = float(flux(injected).sum())
@@ -139,7 +235,8 @@ def propagate(
         if total0 <= 0:
             early = True
             break
-        cur = step(cur, visibility, reprojection)
+        vis = visibility if (done > 0 or occlude_first_step) else None
+        cur = step(cur, vis, reprojection, angular)
         acc += cur
         done += 1
         fraction = float(flux(cur).sum()) / total0

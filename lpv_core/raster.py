@@ -22,15 +22,18 @@ in vec3 in_pos;
 in vec3 in_nrm;
 in vec3 in_alb;
 in vec3 in_refl;
+in float in_recv;
 out vec3 v_pos;
 out vec3 v_nrm;
 out vec3 v_alb;
 out vec3 v_refl;
+out float v_recv;
 void main() {
     v_pos = in_pos;
     v_nrm = in_nrm;
     v_alb = in_alb;
     v_refl = in_refl;
+    v_recv = in_recv;
     gl_Position = view_proj * vec4(in_pos, 1.0);
 }
 """
@@ -45,6 +48,7 @@ in vec3 v_pos;
 in vec3 v_nrm;
 in vec3 v_alb;
 in vec3 v_refl;
+in float v_recv;
 layout(location = 0) out vec4 o_pos;
 layout(location = 1) out vec4 o_nrm;
 layout(location = 2) out vec4 o_alb;
@@ -55,7 +59,7 @@ void main() {
     if (dot(n, to_eye) < 0.0) n = -n;
     o_pos = vec4(v_pos - origin, 1.0);
     o_nrm = vec4(n, 0.0);
-    o_alb = vec4(v_alb, 1.0);
+    o_alb = vec4(v_alb, v_recv);  // alpha: receives GI (Object.lpv.gi_receiver)
     o_refl = vec4(v_refl, 1.0);
 }
 """
@@ -93,6 +97,7 @@ class Frame:
     albedo: np.ndarray  # diffuse colour
     reflectance: np.ndarray  # GI reflectance (bleed colour where set)
     covered: np.ndarray  # bool mask
+    receiver: np.ndarray | None = None  # bool mask: covered and receives indirect light
 
 
 class Rasterizer:
@@ -109,8 +114,9 @@ class Rasterizer:
         self._fbos: dict = {}
         self.origin = np.zeros(3)
 
-    def upload(self, positions, normals, albedo, reflectance, key=None) -> None:
-        """Upload (T,3,3) corners and normals with (T,3) per-triangle colours."""
+    def upload(self, positions, normals, albedo, reflectance, key=None, receiver=None) -> None:
+        """Upload (T,3,3) corners and normals with (T,3) per-triangle colours and an optional
+        (T,) receiver flag (default: every triangle receives GI)."""
         if key is not None and key == self._key:
             return
         pos = np.asarray(positions, np.float64).reshape(-1, 3, 3)
@@ -120,17 +126,19 @@ class Rasterizer:
             0.5 * (pos.reshape(-1, 3).min(0) + pos.reshape(-1, 3).max(0)) if t else np.zeros(3)
         )
         rel = (pos - self.origin).astype(np.float32)
-        data = np.empty((t, 3, 12), np.float32)
+        data = np.empty((t, 3, 13), np.float32)
         data[..., 0:3] = rel
         data[..., 3:6] = np.asarray(normals, np.float32).reshape(-1, 3, 3)
         data[..., 6:9] = np.asarray(albedo, np.float32).reshape(-1, 1, 3)
         data[..., 9:12] = np.asarray(reflectance, np.float32).reshape(-1, 1, 3)
+        data[..., 12] = 1.0 if receiver is None else np.asarray(receiver, np.float32).reshape(-1, 1)
         self.release_geometry()
         if t:
             self._vbo = self.ctx.buffer(data.tobytes())
             self._vao = self.ctx.vertex_array(
                 self.program,
-                [(self._vbo, "3f 3f 3f 3f", "in_pos", "in_nrm", "in_alb", "in_refl")],
+                [(self._vbo, "3f 3f 3f 3f 1f", "in_pos", "in_nrm", "in_alb", "in_refl",
+                  "in_recv")],
             )
         self._key = key
 
@@ -195,6 +203,7 @@ class Rasterizer:
             albedo=np.ascontiguousarray(out[2][..., :3]),
             reflectance=np.ascontiguousarray(out[3][..., :3]),
             covered=covered,
+            receiver=covered & (out[2][..., 3] > 0.5),
         )
 
     def release(self) -> None:

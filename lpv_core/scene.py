@@ -50,6 +50,7 @@ class Light:
     radius: float = 0.0  # shadow_soft_size
     size: tuple[float, float] = (1.0, 1.0)  # area light extent (m) along local X and Y
     gi_intensity: float = 1.0
+    gi_color: np.ndarray = field(default_factory=lambda: np.ones(3, np.float32))  # GI tint
     cast_shadow: bool = True
 
     @property
@@ -100,12 +101,14 @@ class Camera:
 class GISettings:
     """Quality and artist settings for one LPV update."""
 
-    grid_resolution: int = 32
+    grid_resolution: int = 16
     cascades: int = 1
-    iterations: int = 0  # 0: automatic, resolution / 4 (KD10 runs 8 steps on 32^3 cascades)
+    iterations: int = 0  # 0: automatic (engine.auto_iterations)
     reprojection: str = "kd10"  # side-face re-emission: "kd10" (paper) or "ray"
+    angular: str = "m1"  # cell read as max-entropy lobe ("m1", closure.py) or clamped SH ("sh", KD10)
+    direction_groups: int = 6  # 6: propagate VPLs of each facing apart (see engine); 1: together
     rsm_resolution: int = 256
-    occlusion: bool = False
+    occlusion: bool = True
     bounces: int = 1
     backend: str = "numpy"
     intensity: float = 1.0  # global GI multiplier (keyframable in the add-on)
@@ -203,11 +206,16 @@ class Scene:
         return table[self.material_index]
 
     def reflectance_per_triangle(self) -> np.ndarray:
-        """GI reflectance (bleed colour where set) per triangle, (T, 3)."""
+        """GI reflectance (bleed colour where set) per triangle, (T, 3); 0 for non-casters
+        (they inject no light into the LPV but still cast shadows in the RSM)."""
         if not self.materials:
-            return np.full((self.triangle_count, 3), 0.8, np.float32)
-        table = np.array([m.gi_reflectance() for m in self.materials], np.float32)
-        return table[self.material_index]
+            out = np.full((self.triangle_count, 3), 0.8, np.float32)
+        else:
+            table = np.array([m.gi_reflectance() for m in self.materials], np.float32)
+            out = table[self.material_index]
+        if self.caster is not None:
+            out = out * self.flag("caster")[:, None].astype(np.float32)
+        return out
 
 
 def _material_table(materials: list[Material], attr: str) -> np.ndarray:

@@ -84,16 +84,14 @@ def _indirect_error(ours, ref):
     return rmse, float(a.mean() / b.mean())
 
 
-def test_indirect_energy_matches_cycles_within_a_factor_of_two(pair):
-    ours, ref = pair("cornell_spot")
+@pytest.mark.parametrize("name", ["cornell_spot", "cornell_point", "cornell_sun", "point_room"])
+def test_indirect_energy_matches_cycles_within_a_factor_of_two(pair, name):
+    ours, ref = pair(name)
     rmse, ratio = _indirect_error(ours, ref)
-    print(f"\ncornell_spot indirect: relative RMSE {rmse:.3f}, mean ours/Cycles {ratio:.3f}")
+    print(f"\n{name} indirect: relative RMSE {rmse:.3f}, mean ours/Cycles {ratio:.3f}")
     assert 0.5 <= ratio <= 2.0
 
 
-@pytest.mark.xfail(reason="issue 2 target not met yet: LPV propagation is diffusive and "
-                   "self-illuminates; occlusion and damping (issue 3) are the planned fixes",
-                   strict=False)
 def test_indirect_relative_rmse_on_cornell_box_at_most_half(pair):
     ours, ref = pair("cornell_spot")
     rmse, ratio = _indirect_error(ours, ref)
