@@ -135,13 +135,18 @@ def step_m1(values: np.ndarray, visibility: np.ndarray | None = None) -> np.ndar
     dirs, adv, r_max = _m1_tables()
     src = values.reshape(-1, 4)
     held, mean_cos, d = closure.moments(src)
-    k = closure.kappa(np.minimum(mean_cos, r_max)).astype(np.float32)
-    logits = k[:, None] * (d @ dirs.T - 1.0)
-    logits -= logits.max(axis=1, keepdims=True)
-    bundles = np.exp(logits)
-    bundles *= (held / bundles.sum(axis=1))[:, None]
-    arrivals = (bundles @ adv).reshape(r, r, r, 3, len(OFFSETS), 4)
+    live = np.nonzero(held > 0)[0]  # empty cells send nothing: skip them
     out = np.zeros_like(values)
+    if live.size == 0:
+        return out
+    k = closure.kappa(np.minimum(mean_cos[live], r_max)).astype(np.float32)
+    # kappa <= q / (4 pi) (5.1 for q = 64), so exp(kappa cos) cannot overflow.
+    bundles = np.exp(k[:, None] * (d[live] @ dirs.T))
+    scale = held[live] / bundles.sum(axis=1)
+    arrivals = np.zeros((src.shape[0], adv.shape[1]), np.float32)
+    arrivals[live] = (bundles @ adv) * scale[:, None]
+    arrivals = np.ascontiguousarray(
+        arrivals.reshape(r, r, r, 3, len(OFFSETS), 4).transpose(4, 0, 1, 2, 3, 5))
     for k_off, off in enumerate(OFFSETS):
         dst, src_sl = [slice(None)] * 3, [slice(None)] * 3
         for axis in range(3):
@@ -149,7 +154,7 @@ def step_m1(values: np.ndarray, visibility: np.ndarray | None = None) -> np.ndar
                 dst[axis], src_sl[axis] = slice(1, None), slice(None, -1)
             elif off[axis] == -1:
                 dst[axis], src_sl[axis] = slice(None, -1), slice(1, None)
-        sent = arrivals[tuple(src_sl)][..., k_off, :]
+        sent = arrivals[k_off][tuple(src_sl)]
         if visibility is not None:
             sent = sent * _offset_visibility(visibility, off)[tuple(src_sl)][..., None, None]
         out[tuple(dst)] += sent
