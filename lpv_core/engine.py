@@ -61,6 +61,8 @@ class LPVResult:
     stats: Stats
     # light name -> (positions (N, 3), flux (N, 3)): a subsample of its VPLs (debug views)
     vpls: dict = field(default_factory=dict)
+    # (6, R, R, R) propagation visibility used (occlusion x clip areas), None if all clear
+    visibility: np.ndarray | None = None
 
 
 class Engine:
@@ -80,8 +82,9 @@ class Engine:
 
     def backend(self, settings, stats: Stats | None = None):
         """The compute backend for ``settings.backend``: "numpy", "gl" (moderngl compute
-        shaders, gl_backend.py) or "auto" (the faster of the two on this machine, measured
-        once per process on a small grid). Each has inject, propagate, irradiance, discard."""
+        shaders, gl_backend.py) or "auto" (per stage, the faster of the two on this machine,
+        measured once per process on a small grid). Each has inject, propagate, irradiance
+        and discard (frees what inject returned)."""
         name = getattr(settings, "backend", "numpy")
         if name == "auto":
             from . import gl_backend
@@ -90,10 +93,11 @@ class Engine:
                 gl = self._gl_backend()
             except Exception:  # noqa: BLE001 - no usable GL context: auto falls back to numpy
                 gl = None
-            choice = gl_backend.auto_backend(gl) if gl is not None else {"backend": "numpy"}
-            name = choice["backend"]
+            be, choice = gl_backend.auto_select(gl, NUMPY_BACKEND)
             if stats is not None:
                 stats.info["backend_auto"] = dict(choice)
+                stats.info["backend"] = be.name
+            return be
         if name == "gl":
             be = self._gl_backend()
         elif name == "numpy":
@@ -174,14 +178,61 @@ class Engine:
                 run_iterations.append(prop.iterations)
                 with Timer(stats, "combine"):
                     total = prop.values if total is None else total + prop.values
+            if total is None:
+                total = grid.zeros()
+            if settings.bounces > 1:
+                total = self._more_bounces(scene, grid, total, iterations, visibility,
+                                           backend, stats)
             with Timer(stats, "combine"):
-                per_light[light.name] = total if total is not None else grid.zeros()
+                per_light[light.name] = total
         with Timer(stats, "combine"):
             combined = combine(grid, per_light, active, settings.intensity)
         stats.info["vpls"] = vpl_count
         stats.info["iterations"] = run_iterations
         stats.ms["lpv_update"] = (time.perf_counter() - t0) * 1000.0
-        return LPVResult(grid, combined, per_light, stats, vpl_sample)
+        return LPVResult(grid, combined, per_light, stats, vpl_sample, visibility)
+
+
+    def _more_bounces(self, scene: Scene, grid: Grid, first: np.ndarray, iterations: int,
+                      visibility, backend, stats: Stats) -> np.ndarray:
+        """Add bounces 2..N [KD10 sec. 6]: every caster surfel reflects the light of the
+        previous bounce (irradiance on each side x area x GI reflectance) as new VPLs, which
+        are injected and propagated like the RSM's. Each bounce carries at most the albedo's
+        share of the last, so the series converges."""
+        settings = scene.settings
+        with Timer(stats, "bounces"):
+            casters = np.nonzero(scene.flag("caster"))[0]
+            pos, nrm, area, tri = geometry_volume.surfels(
+                scene.positions[casters], 0.5 * grid.cell_size, with_index=True)
+            refl = scene.reflectance_per_triangle()[casters][tri].astype(np.float64)
+            pos2 = np.concatenate([pos, pos])
+            nrm2 = np.concatenate([nrm, -nrm])  # surfaces reflect on both sides
+            area2 = np.concatenate([area, area])[:, None]
+            refl2 = np.concatenate([refl, refl])
+        total = first.copy()
+        previous = first
+        for _ in range(settings.bounces - 1):
+            with Timer(stats, "bounces"):
+                e = backend.irradiance(grid, previous, pos2, nrm2, angular=settings.angular)
+                flux = e * area2 * refl2
+                keep = flux.max(axis=1) > 0
+            if not keep.any():
+                stats.skip("bounces", "further bounces", "no light reaches any caster")
+                break
+            bounce = None
+            for group in direction_groups(nrm2[keep], settings.direction_groups):
+                with Timer(stats, "injection"):
+                    injected = backend.inject(grid, pos2[keep][group], nrm2[keep][group],
+                                              flux[keep][group])
+                with Timer(stats, "propagation"):
+                    prop = backend.propagate(injected, iterations,
+                                             reprojection=settings.reprojection,
+                                             angular=settings.angular, visibility=visibility)
+                    backend.discard(injected)
+                bounce = prop.values if bounce is None else bounce + prop.values
+            total += bounce
+            previous = bounce
+        return total
 
 
 def direction_groups(normals: np.ndarray, groups: int) -> list:

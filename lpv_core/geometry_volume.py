@@ -16,16 +16,18 @@ import numpy as np
 from .grid import Grid
 
 
-def surfels(positions: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def surfels(positions: np.ndarray, spacing: float, with_index: bool = False):
     """Sample triangles (T, 3, 3) into surfels at most ``spacing`` apart.
 
     Returns centres (N, 3), unit normals (N, 3) and areas (N,) that add up to each triangle's
-    area. A triangle gets k^2 sub-triangles (k from its longest edge), whose centroids are the
-    surfels: exact area, even coverage, no randomness.
+    area (and, ``with_index``, each surfel's triangle (N,)). A triangle gets k^2 sub-triangles
+    (k from its longest edge), whose centroids are the surfels: exact area, even coverage, no
+    randomness.
     """
     p = np.asarray(positions, np.float64).reshape(-1, 3, 3)
     if p.shape[0] == 0:
-        return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)
+        empty = (np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0))
+        return empty + (np.zeros(0, np.int64),) if with_index else empty
     e1 = p[:, 1] - p[:, 0]
     e2 = p[:, 2] - p[:, 0]
     cross = np.cross(e1, e2)
@@ -33,7 +35,7 @@ def surfels(positions: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarr
     normal = cross / np.where(area2 > 0, area2, 1.0)[:, None]
     longest = np.max(np.linalg.norm(np.stack([e1, e2, p[:, 2] - p[:, 1]], 1), axis=2), axis=1)
     k = np.clip(np.ceil(longest / max(spacing, 1e-30)), 1, 64).astype(np.int64)
-    out_p, out_n, out_a = [], [], []
+    out_p, out_n, out_a, out_i = [], [], [], []
     for kk in np.unique(k):
         sel = np.nonzero(k == kk)[0]
         bary = _sub_centroids(int(kk))  # (kk^2, 3)
@@ -41,7 +43,9 @@ def surfels(positions: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarr
         out_p.append(pts)
         out_n.append(np.repeat(normal[sel], len(bary), axis=0))
         out_a.append(np.repeat(0.5 * area2[sel] / len(bary), len(bary)))
-    return np.concatenate(out_p), np.concatenate(out_n), np.concatenate(out_a)
+        out_i.append(np.repeat(sel, len(bary)))
+    result = (np.concatenate(out_p), np.concatenate(out_n), np.concatenate(out_a))
+    return result + (np.concatenate(out_i),) if with_index else result
 
 
 def _sub_centroids(k: int) -> np.ndarray:

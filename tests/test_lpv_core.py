@@ -196,3 +196,16 @@ def test_m1_point_source_matches_the_analytic_irradiance():
     logs = np.abs(np.array(logs))
     print(f"\nm1 point source vs analytic: mean |log ratio| {logs.mean():.3f}, max {logs.max():.3f}")
     assert logs.mean() < 0.25 and logs.max() < 0.5
+
+
+def test_more_bounces_add_light_and_converge():
+    base = GISettings(grid_resolution=8, rsm_resolution=32, shadow_resolution=64)
+    results = []
+    for bounces in (1, 2, 3):
+        sc = demo.cornell_box("SPOT", (24, 24), base.updated(bounces=bounces))
+        res = engine.Engine().update(sc)
+        results.append(float(propagation.flux(res.values).sum()))
+    one, two, three = results
+    assert one < two < three
+    # Each bounce reflects at most the brightest albedo (0.8) of the one before.
+    assert (three - two) <= 0.8 * (two - one) + 1e-6 * one
