@@ -57,6 +57,9 @@ def render(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats | None = N
                 e_ind = np.zeros((pos.shape[0], 3))
                 e_ind[recv] = lookup.irradiance(lpv.grid, lpv.values, pos[recv], nrm[recv],
                                                 angular=scene.settings.angular)
+                for fine_grid, fine_values in lpv.fine:  # inner cascades add their light
+                    e_ind[recv] += lookup.irradiance(fine_grid, fine_values, pos[recv],
+                                                     nrm[recv], angular=scene.settings.angular)
                 if areas.has_transition(scene.areas):
                     e_ind *= areas.transition_factor(scene.areas, pos)
                 diff_ind[mask] = e_ind / np.pi

@@ -92,3 +92,31 @@ def cornell_box(
                          resolution=resolution, near=0.05 * s, far=100.0 * s)
     return make_scene(pos, material_index=np.array(mat), materials=mats, lights=lights,
                       camera=cam, settings=settings or GISettings())
+
+
+def outdoor(resolution: tuple[int, int] = (128, 96), settings: GISettings | None = None,
+            sun_elevation_deg: float = 20.0) -> Scene:
+    """A 200 m square of ground with 14 buildings 4-30 m tall under a low sun, camera at
+    street level (deterministic layout)."""
+    mats = [Material("ground", np.array([0.35, 0.33, 0.3], np.float32)),
+            Material("plaster", np.array([0.75, 0.7, 0.6], np.float32)),
+            Material("brick", np.array([0.6, 0.25, 0.15], np.float32))]
+    tris = [quad((-100, -100, 0), (100, -100, 0), (100, 100, 0), (-100, 100, 0))]
+    mat = [0, 0]
+    rng = np.random.default_rng(7)
+    for i in range(14):
+        cx, cy = rng.uniform(-70, 70, 2)
+        if abs(cx) < 12 and -60 < cy < 20:
+            cx += 30.0  # keep the street in front of the camera open
+        w, d = rng.uniform(8, 25, 2)
+        h = rng.uniform(4, 30)
+        tris.append(box_triangles((cx - w / 2, cy - d / 2, 0), (cx + w / 2, cy + d / 2, h)))
+        mat += [1 + i % 2] * 12
+    pos = np.concatenate(tris)
+    el = np.radians(sun_elevation_deg)
+    sun = Light("Sun", "SUN", light_matrix((0, 0, 0), (-np.cos(el) * 0.6, -np.cos(el) * 0.8,
+                                                        -np.sin(el))), power=4.0)
+    cam = Camera.look_at((0.0, -60.0, 1.7), (0.0, 40.0, 8.0), fov_y=np.radians(50),
+                         resolution=resolution, near=0.1, far=500.0)
+    return make_scene(pos, material_index=np.array(mat), materials=mats, lights=[sun],
+                      camera=cam, settings=settings or GISettings())

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import areas, geometry_volume, injection, propagation
+from . import areas, cascades, geometry_volume, injection, propagation
 from .grid import Grid, fit_grid
 from .scene import Scene
 
@@ -63,6 +63,8 @@ class LPVResult:
     vpls: dict = field(default_factory=dict)
     # (6, R, R, R) propagation visibility used (occlusion x clip areas), None if all clear
     visibility: np.ndarray | None = None
+    # Finer cascades inside ``grid`` (finest first): (Grid, combined values); lookups add them.
+    fine: list = field(default_factory=list)
 
 
 class Engine:
@@ -134,9 +136,16 @@ class Engine:
             stats.ms["lpv_update"] = 0.0
             return LPVResult(None, None, {}, stats)
         lo, hi = scene.bounds()
-        grid = fit_grid(lo, hi, settings.grid_resolution)
+        chain = cascades.place(lo, hi, settings.grid_resolution, settings.cascades, scene.camera)
+        grid = chain[-1]
         stats.info["grid"] = {"origin": list(grid.origin), "cell_size": grid.cell_size,
                               "resolution": grid.resolution}
+        if len(chain) > 1:
+            stats.info["cascades"] = [{"origin": list(g.origin), "cell_size": g.cell_size}
+                                      for g in chain]
+        elif settings.cascades > 1:
+            stats.skip("cascades", f"{settings.cascades - 1} inner cascades",
+                       "no camera to centre them on")
         active = []
         for light in scene.lights:
             reason = _no_gi_reason(light, settings.intensity)
@@ -154,6 +163,8 @@ class Engine:
         iterations = settings.iterations or auto_iterations(settings.grid_resolution,
                                                             settings.angular)
         visibility = propagation_visibility(scene, grid, stats)
+        if len(chain) > 1:
+            return self._update_cascaded(scene, chain, active, iterations, visibility, stats, t0)
         vpl_sample = {}
         per_light = {}
         vpl_count = 0
@@ -192,6 +203,59 @@ class Engine:
         stats.ms["lpv_update"] = (time.perf_counter() - t0) * 1000.0
         return LPVResult(grid, combined, per_light, stats, vpl_sample, visibility)
 
+
+    def _update_cascaded(self, scene: Scene, chain: list, active: list, iterations: int,
+                         coarse_visibility, stats: Stats, t0: float) -> LPVResult:
+        """Cascaded propagation (cascades.py): finest first, each hands on what leaves it."""
+        from .rsm import render_rsm
+
+        settings = scene.settings
+        lo, hi = scene.bounds()
+        visibilities = [propagation_visibility(scene, g) for g in chain[:-1]]
+        visibilities.append(coarse_visibility)
+        if settings.bounces > 1:
+            stats.skip("bounces", "bounces 2+", "not implemented with cascades yet")
+        per_light, per_light_fine, vpl_sample = {}, {}, {}
+        vpl_count = 0
+        run_iterations = []
+        for light in active:
+            with Timer(stats, "rsm"):
+                rsm = render_rsm(self.raster, light, (lo, hi), settings.rsm_resolution)
+            vpl_count += rsm.count
+            keep = slice(None, None, max(1, rsm.count // VPL_SAMPLE))
+            vpl_sample[light.name] = (rsm.position[keep].astype(np.float32),
+                                      rsm.flux[keep].astype(np.float32))
+            level = cascades.assign(chain, rsm.position)
+            totals = [g.zeros() for g in chain]
+            for group in direction_groups(rsm.normal, settings.direction_groups):
+                idx = np.arange(rsm.count)[group]
+                carry = None
+                for c, g in enumerate(chain):
+                    sel = idx[level[idx] == c]
+                    with Timer(stats, "injection"):
+                        injected = injection.inject(g, rsm.position[sel], rsm.normal[sel],
+                                                    rsm.flux[sel])
+                        if carry is not None:
+                            cascades.hand_on(chain[c - 1], carry, g, injected)
+                    with Timer(stats, "propagation"):
+                        prop = propagation.propagate(
+                            injected, iterations, reprojection=settings.reprojection,
+                            angular=settings.angular, visibility=visibilities[c],
+                            capture_outflow=c < len(chain) - 1)
+                    run_iterations.append(prop.iterations)
+                    totals[c] += prop.values
+                    carry = prop.outflow
+            per_light[light.name] = totals[-1]
+            per_light_fine[light.name] = totals[:-1]
+        with Timer(stats, "combine"):
+            combined = combine(chain[-1], per_light, active, settings.intensity)
+            fine = [(g, combine(g, {n: v[c] for n, v in per_light_fine.items()}, active,
+                                settings.intensity)) for c, g in enumerate(chain[:-1])]
+        stats.info["vpls"] = vpl_count
+        stats.info["iterations"] = run_iterations
+        stats.ms["lpv_update"] = (time.perf_counter() - t0) * 1000.0
+        return LPVResult(chain[-1], combined, per_light, stats, vpl_sample, coarse_visibility,
+                         fine)
 
     def _more_bounces(self, scene: Scene, grid: Grid, first: np.ndarray, iterations: int,
                       visibility, backend, stats: Stats) -> np.ndarray:

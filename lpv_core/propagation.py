@@ -214,6 +214,9 @@ class PropagationResult:
     injected_flux: np.ndarray
     remaining_fraction: float
     stopped_early: bool
+    # With capture_outflow: (R+2)^3 grid whose one-cell shell holds what left the volume
+    # (summed over steps), to be handed on to the next coarser cascade.
+    outflow: np.ndarray | None = None
 
 
 def propagate(
@@ -224,12 +227,17 @@ def propagate(
     reprojection: str = "kd10",
     angular: str = "sh",
     occlude_first_step: bool = False,
+    capture_outflow: bool = False,
 ) -> PropagationResult:
     """Accumulate ``iterations`` propagation steps, stopping once a step carries less than
     ``min_fraction`` of the injected flux (light moves one cell per step).
 
     The first step ignores ``visibility`` unless ``occlude_first_step`` (KD10: injected light
-    sits next to the surface it left, which must not block it)."""
+    sits next to the surface it left, which must not block it). ``capture_outflow`` keeps what
+    leaves the volume instead of dropping it (light passing on to an outer cascade)."""
+    if capture_outflow:
+        return _propagate_capturing(injected, iterations, min_fraction, visibility,
+                                    reprojection, angular, occlude_first_step)
     acc = injected.astype(np.float32, copy=True)
     cur = injected
     total0 = float(flux(injected).sum())
@@ -249,3 +257,33 @@ def propagate(
             early = True
             break
     return PropagationResult(acc, done, flux(injected), fraction, early)
+
+
+def _propagate_capturing(injected, iterations, min_fraction, visibility, reprojection, angular,
+                         occlude_first_step) -> PropagationResult:
+    """propagate() on a grid padded by one cell; arrivals in the pad are moved to ``outflow``."""
+    pad = ((1, 1), (1, 1), (1, 1), (0, 0), (0, 0))
+    cur = np.pad(injected.astype(np.float32), pad)
+    vis_pad = None
+    if visibility is not None:
+        vis_pad = np.pad(visibility, ((0, 0), (1, 1), (1, 1), (1, 1)), constant_values=1.0)
+    shell = np.ones(cur.shape[:3], bool)
+    shell[1:-1, 1:-1, 1:-1] = False
+    outflow = np.zeros_like(cur)
+    acc = injected.astype(np.float32, copy=True)
+    total0 = float(flux(injected).sum())
+    fraction = 1.0 if total0 > 0 else 0.0
+    done = 0
+    early = total0 <= 0
+    for _ in range(0 if early else max(int(iterations), 0)):
+        vis = vis_pad if (done > 0 or occlude_first_step) else None
+        cur = step(cur, vis, reprojection, angular)
+        outflow[shell] += cur[shell]
+        cur[shell] = 0.0
+        acc += cur[1:-1, 1:-1, 1:-1]
+        done += 1
+        fraction = float(flux(cur).sum()) / total0
+        if fraction < min_fraction:
+            early = True
+            break
+    return PropagationResult(acc, done, flux(injected), fraction, early, outflow)

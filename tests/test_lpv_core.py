@@ -209,3 +209,29 @@ def test_more_bounces_add_light_and_converge():
     assert one < two < three
     # Each bounce reflects at most the brightest albedo (0.8) of the one before.
     assert (three - two) <= 0.8 * (two - one) + 1e-6 * one
+
+
+def test_cascades_nest_snap_and_hand_light_outwards():
+    from lpv_core import cascades
+
+    sc = demo.outdoor((32, 24), GISettings(grid_resolution=8, cascades=3, rsm_resolution=64,
+                                           shadow_resolution=128, direction_groups=1))
+    lo, hi = sc.bounds()
+    chain = cascades.place(lo, hi, 8, 3, sc.camera)
+    assert [g.cell_size for g in chain] == pytest.approx(
+        [chain[-1].cell_size / 4, chain[-1].cell_size / 2, chain[-1].cell_size])
+    for inner, outer in zip(chain, chain[1:]):
+        ilo, ihi = inner.bounds()
+        olo, ohi = outer.bounds()
+        assert np.all(ilo >= olo - 1e-9) and np.all(ihi <= ohi + 1e-9)
+        # snapped: the inner origin sits on the outer grid's lattice of inner cells
+        k = (inner.origin_array - chain[-1].origin_array) / inner.cell_size
+        np.testing.assert_allclose(k, np.round(k), atol=1e-6)
+    # Moving the camera by less than the finest cell keeps every cascade in place.
+    shifted = sc.camera.view.copy()
+    shifted[:3, 3] -= shifted[:3, :3] @ np.array([0.2, 0.1, 0.0]) * chain[0].cell_size
+    cam2 = type(sc.camera)(shifted, sc.camera.projection, sc.camera.resolution)
+    assert [g.origin for g in cascades.place(lo, hi, 8, 3, cam2)] == [g.origin for g in chain]
+    res = engine.Engine().update(sc)
+    assert len(res.fine) == 2
+    assert all(np.isfinite(v).all() for _, v in res.fine)
