@@ -56,10 +56,12 @@ def render(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats | None = N
                     stats.skip("lookup", f"{int((~recv).sum())} pixels", "gi_receiver is off")
                 e_ind = np.zeros((pos.shape[0], 3))
                 e_ind[recv] = lookup.irradiance(lpv.grid, lpv.values, pos[recv], nrm[recv],
-                                                angular=scene.settings.angular)
-                for fine_grid, fine_values in lpv.fine:  # inner cascades add their light
+                                                angular=scene.settings.angular,
+                                                visibility=lpv.visibility)
+                for fine_grid, fine_values, fine_vis in lpv.fine:  # inner cascades add theirs
                     e_ind[recv] += lookup.irradiance(fine_grid, fine_values, pos[recv],
-                                                     nrm[recv], angular=scene.settings.angular)
+                                                     nrm[recv], angular=scene.settings.angular,
+                                                     visibility=fine_vis)
                 if areas.has_transition(scene.areas):
                     e_ind *= areas.transition_factor(scene.areas, pos)
                 diff_ind[mask] = e_ind / np.pi

@@ -120,3 +120,27 @@ def outdoor(resolution: tuple[int, int] = (128, 96), settings: GISettings | None
                          resolution=resolution, near=0.1, far=500.0)
     return make_scene(pos, material_index=np.array(mat), materials=mats, lights=[sun],
                       camera=cam, settings=settings or GISettings())
+
+
+def two_rooms(settings: GISettings | None = None, wall: float = 0.2) -> Scene:
+    """Two 4 x 4 x 3 m rooms side by side (x), sharing a ``wall``-thick wall; the left one is
+    lit by a sun through a 1.6 m hole in its roof, the right one is closed on every side."""
+    t = wall
+    boxes = []
+    for x0 in (0.0, 4.0 + t):
+        x1 = x0 + 4.0
+        boxes += [((x0 - t, -t, -t), (x1 + t, 4.0 + t, 0.0)),  # floor slab
+                  ((x0 - t, -t, 0.0), (x1 + t, 0.0, 3.0)),  # front wall
+                  ((x0 - t, 4.0, 0.0), (x1 + t, 4.0 + t, 3.0))]  # back wall
+    boxes += [((-t, 0.0, 0.0), (0.0, 4.0, 3.0)),  # outer left wall
+              ((4.0, 0.0, 0.0), (4.0 + t, 4.0, 3.0)),  # the shared wall
+              ((8.0 + t, 0.0, 0.0), (8.0 + 2 * t, 4.0, 3.0))]  # outer right wall
+    # Left roof with a hole from 1.2 to 2.8 in x and y; right roof closed.
+    boxes += [((-t, -t, 3.0), (1.2, 4.0 + t, 3.0 + t)), ((2.8, -t, 3.0), (4.0 + t, 4.0 + t, 3.0 + t)),
+              ((1.2, -t, 3.0), (2.8, 1.2, 3.0 + t)), ((1.2, 2.8, 3.0), (2.8, 4.0 + t, 3.0 + t)),
+              ((4.0, -t, 3.0), (8.0 + 2 * t, 4.0 + t, 3.0 + t))]
+    pos = np.concatenate([box_triangles(lo, hi) for lo, hi in boxes])
+    sun = Light("Sun", "SUN", light_matrix((0, 0, 0), (0.15, 0.1, -1.0)), power=5.0)
+    cam = Camera.look_at((2.0, 0.5, 1.5), (2.0, 4.0, 1.0), resolution=(32, 32))
+    return make_scene(pos, materials=[Material("white", np.full(3, 0.7, np.float32))],
+                      lights=[sun], camera=cam, settings=settings or GISettings())

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import areas, cascades, geometry_volume, injection, propagation
+from . import areas, cascades, geometry_volume, injection, lookup, propagation
 from .grid import Grid, fit_grid
 from .scene import Scene
 
@@ -63,7 +63,8 @@ class LPVResult:
     vpls: dict = field(default_factory=dict)
     # (6, R, R, R) propagation visibility used (occlusion x clip areas), None if all clear
     visibility: np.ndarray | None = None
-    # Finer cascades inside ``grid`` (finest first): (Grid, combined values); lookups add them.
+    # Finer cascades inside ``grid`` (finest first): (Grid, combined values, visibility);
+    # lookups add them.
     fine: list = field(default_factory=list)
 
 
@@ -95,7 +96,8 @@ class Engine:
                 gl = self._gl_backend()
             except Exception:  # noqa: BLE001 - no usable GL context: auto falls back to numpy
                 gl = None
-            be, choice = gl_backend.auto_select(gl, NUMPY_BACKEND)
+            be, choice = gl_backend.auto_select(gl, NUMPY_BACKEND,
+                                                getattr(settings, "angular", "sh"))
             if stats is not None:
                 stats.info["backend_auto"] = dict(choice)
                 stats.info["backend"] = be.name
@@ -179,8 +181,8 @@ class Engine:
             total = None
             for group in direction_groups(rsm.normal, settings.direction_groups):
                 with Timer(stats, "injection"):
-                    injected = backend.inject(grid, rsm.position[group], rsm.normal[group],
-                                              rsm.flux[group])
+                    injected = _inject(backend, grid, rsm.position[group], rsm.normal[group],
+                                       rsm.flux[group], visibility)
                 with Timer(stats, "propagation"):
                     prop = backend.propagate(injected, iterations,
                                              reprojection=settings.reprojection,
@@ -234,7 +236,7 @@ class Engine:
                     sel = idx[level[idx] == c]
                     with Timer(stats, "injection"):
                         injected = injection.inject(g, rsm.position[sel], rsm.normal[sel],
-                                                    rsm.flux[sel])
+                                                    rsm.flux[sel], visibility=visibilities[c])
                         if carry is not None:
                             cascades.hand_on(chain[c - 1], carry, g, injected)
                     with Timer(stats, "propagation"):
@@ -250,7 +252,8 @@ class Engine:
         with Timer(stats, "combine"):
             combined = combine(chain[-1], per_light, active, settings.intensity)
             fine = [(g, combine(g, {n: v[c] for n, v in per_light_fine.items()}, active,
-                                settings.intensity)) for c, g in enumerate(chain[:-1])]
+                                settings.intensity), visibilities[c])
+                    for c, g in enumerate(chain[:-1])]
         stats.info["vpls"] = vpl_count
         stats.info["iterations"] = run_iterations
         stats.ms["lpv_update"] = (time.perf_counter() - t0) * 1000.0
@@ -277,7 +280,8 @@ class Engine:
         previous = first
         for _ in range(settings.bounces - 1):
             with Timer(stats, "bounces"):
-                e = backend.irradiance(grid, previous, pos2, nrm2, angular=settings.angular)
+                e = lookup.irradiance(grid, previous, pos2, nrm2, angular=settings.angular,
+                                      visibility=visibility)
                 flux = e * area2 * refl2
                 keep = flux.max(axis=1) > 0
             if not keep.any():
@@ -286,8 +290,8 @@ class Engine:
             bounce = None
             for group in direction_groups(nrm2[keep], settings.direction_groups):
                 with Timer(stats, "injection"):
-                    injected = backend.inject(grid, pos2[keep][group], nrm2[keep][group],
-                                              flux[keep][group])
+                    injected = _inject(backend, grid, pos2[keep][group], nrm2[keep][group],
+                                       flux[keep][group], visibility)
                 with Timer(stats, "propagation"):
                     prop = backend.propagate(injected, iterations,
                                              reprojection=settings.reprojection,
@@ -297,6 +301,13 @@ class Engine:
             total += bounce
             previous = bounce
         return total
+
+
+def _inject(backend, grid: Grid, positions, normals, flux, visibility):
+    """The backend's injection; the occlusion-aware splat (numpy) when there are occluders."""
+    if visibility is None:
+        return backend.inject(grid, positions, normals, flux)
+    return injection.inject(grid, positions, normals, flux, visibility=visibility)
 
 
 def direction_groups(normals: np.ndarray, groups: int) -> list:

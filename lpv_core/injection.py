@@ -41,16 +41,56 @@ def trilinear_corners(coords: np.ndarray, resolution: int):
     return idx, wts
 
 
+def visible_corners(coords: np.ndarray, idx: np.ndarray, wts: np.ndarray,
+                    visibility: np.ndarray | None, resolution: int) -> np.ndarray:
+    """Trilinear weights (8, N) with corners behind occluders removed and the rest renormalised.
+
+    A corner counts as far as light gets to it from the cell nearest the point: the product of
+    the face transmittances (``visibility`` (6, R, R, R), propagation.AXES order) the step from
+    that cell to the corner crosses. So a splat or a lookup never reaches through a wall
+    thinner than a cell, and a receiver next to a wall is not darkened by the wall's cells.
+    """
+    if visibility is None or coords.shape[0] == 0:
+        return wts
+    r = resolution
+    base = np.floor(coords).astype(np.int64)
+    near = (coords - base >= 0.5).astype(np.int64)  # (N, 3) nearest corner's offsets
+    cell = np.clip(base + near, 0, r - 1)
+    vis = visibility.reshape(6, -1)
+    flat_cell = (cell[:, 0] * r + cell[:, 1]) * r + cell[:, 2]
+    out = wts.copy()
+    k = 0
+    for dx in (0, 1):
+        for dy in (0, 1):
+            for dz in (0, 1):
+                factor = np.ones(coords.shape[0])
+                for axis, d in enumerate((dx, dy, dz)):
+                    step = d - near[:, axis]  # -1, 0 or +1 along this axis
+                    plus = vis[2 * axis][flat_cell]
+                    minus = vis[2 * axis + 1][flat_cell]
+                    factor *= np.where(step > 0, plus, np.where(step < 0, minus, 1.0))
+                out[k] *= factor
+                k += 1
+    total = out.sum(axis=0)
+    original = wts.sum(axis=0)
+    scale = np.divide(original, total, out=np.zeros_like(total), where=total > 0)
+    return out * scale
+
+
 def inject(grid: Grid, positions: np.ndarray, normals: np.ndarray, flux: np.ndarray,
-           offset_cells: float = 0.5) -> np.ndarray:
-    """SH intensity grid (R, R, R, 3, 4) float32 from VPLs (N, 3) position, normal, flux (W)."""
+           offset_cells: float = 0.5, visibility: np.ndarray | None = None) -> np.ndarray:
+    """SH intensity grid (R, R, R, 3, 4) float32 from VPLs (N, 3) position, normal, flux (W).
+
+    With ``visibility`` the splat does not reach cells behind occluders (visible_corners)."""
     out = grid.zeros()
     n = positions.shape[0]
     if n == 0:
         return out
     normals = np.asarray(normals, np.float64)
     shifted = np.asarray(positions, np.float64) + normals * (offset_cells * grid.cell_size)
-    idx, wts = trilinear_corners(grid.cell_coords(shifted), grid.resolution)
+    coords = grid.cell_coords(shifted)
+    idx, wts = trilinear_corners(coords, grid.resolution)
+    wts = visible_corners(coords, idx, wts, visibility, grid.resolution)
     coeffs = (np.asarray(flux, np.float64) / np.pi)[:, :, None] * sh.cosine_lobe(normals)[:, None, :]
     flat_idx = idx.ravel()
     cells = grid.resolution ** 3

@@ -14,17 +14,21 @@ import numpy as np
 
 from . import closure, sh
 from .grid import Grid
-from .injection import trilinear_corners
+from .injection import trilinear_corners, visible_corners
 
 REPROJECTION_GAIN = np.pi / (sh.C0**2 + sh.C1**2)  # = 12/7
 
 
-def sample(grid: Grid, values: np.ndarray, positions: np.ndarray) -> np.ndarray:
-    """Trilinear SH samples (M, 3, 4) at world positions (M, 3); zero outside the grid."""
+def sample(grid: Grid, values: np.ndarray, positions: np.ndarray,
+           visibility: np.ndarray | None = None) -> np.ndarray:
+    """Trilinear SH samples (M, 3, 4) at world positions (M, 3); zero outside the grid.
+    With ``visibility``, corners behind occluders are left out (injection.visible_corners)."""
     m = positions.shape[0]
     if m == 0:
         return np.zeros((0, 3, 4), np.float32)
-    idx, wts = trilinear_corners(grid.cell_coords(positions), grid.resolution)
+    coords = grid.cell_coords(positions)
+    idx, wts = trilinear_corners(coords, grid.resolution)
+    wts = visible_corners(coords, idx, wts, visibility, grid.resolution)
     flat = values.reshape(-1, 12)
     out = np.zeros((m, 12), np.float64)
     for k in range(8):
@@ -39,6 +43,7 @@ def irradiance(
     normals: np.ndarray,
     offset_cells: float = 0.5,
     angular: str = "sh",
+    visibility: np.ndarray | None = None,
 ) -> np.ndarray:
     """Indirect irradiance (M, 3) in W/m^2 at receivers; samples half a cell along the normal.
 
@@ -48,7 +53,8 @@ def irradiance(
     """
     positions = np.asarray(positions, np.float64)
     normals = np.asarray(normals, np.float64)
-    coeffs = sample(grid, values, positions + normals * (offset_cells * grid.cell_size))
+    coeffs = sample(grid, values, positions + normals * (offset_cells * grid.cell_size),
+                    visibility)
     if angular == "m1":
         held, r, d = closure.moments(coeffs)  # (M, 3), (M, 3), (M, 3, 3)
         t = -np.einsum("mcx,mx->mc", d, normals)

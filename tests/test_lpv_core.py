@@ -234,4 +234,25 @@ def test_cascades_nest_snap_and_hand_light_outwards():
     assert [g.origin for g in cascades.place(lo, hi, 8, 3, cam2)] == [g.origin for g in chain]
     res = engine.Engine().update(sc)
     assert len(res.fine) == 2
-    assert all(np.isfinite(v).all() for _, v in res.fine)
+    assert all(np.isfinite(v).all() for _, v, _ in res.fine)
+
+
+def test_no_light_leaks_through_a_wall_into_a_closed_room():
+    sc = demo.two_rooms()
+    res = engine.Engine().update(sc)
+    xs, ys = np.meshgrid(np.linspace(0.5, 3.5, 7), np.linspace(0.5, 3.5, 7))
+    up = np.tile([0.0, 0.0, 1.0], (xs.size, 1))
+    lit_pts = np.c_[xs.ravel(), ys.ravel(), np.full(xs.size, 1e-3)]
+    dark_pts = lit_pts + [4.2, 0.0, 0.0]
+
+    def indirect(p):
+        e = lookup.irradiance(res.grid, res.values, p, up, angular=sc.settings.angular,
+                              visibility=res.visibility)
+        for g, v, vis in res.fine:
+            e += lookup.irradiance(g, v, p, up, angular=sc.settings.angular, visibility=vis)
+        return e.mean()
+
+    lit, dark = indirect(lit_pts), indirect(dark_pts)
+    print(f"\nleak: dark room floor / lit room floor indirect = {dark / lit:.4f}")
+    assert lit > 0
+    assert dark <= 0.01 * lit
