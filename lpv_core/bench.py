@@ -15,6 +15,8 @@ import statistics
 import sys
 import time
 
+import numpy as np
+
 from . import deferred, demo, engine
 from .scene import GISettings
 
@@ -26,6 +28,7 @@ def run(repeat: int, resolution: tuple[int, int], settings: GISettings) -> dict:
     samples: dict[str, list[float]] = {}
     result = None
     for _ in range(repeat + 1):  # the first run warms up shaders and caches
+        eng.clear_cache()  # time full updates, not reuse
         stats = engine.Stats()
         t0 = time.perf_counter()
         result = eng.update(scene, stats)
@@ -51,6 +54,55 @@ def run(repeat: int, resolution: tuple[int, int], settings: GISettings) -> dict:
     }
 
 
+def _median_update_ms(eng, scene, mutate, repeat: int) -> float:
+    """Median ms of eng.update after ``mutate(scene, i)`` (the change being timed)."""
+    times = []
+    for i in range(repeat):
+        mutate(scene, i)
+        t0 = time.perf_counter()
+        eng.update(scene)
+        times.append((time.perf_counter() - t0) * 1000.0)
+    return statistics.median(times)
+
+
+def incremental(repeat: int, settings: GISettings) -> dict:
+    """Issue-6 figures on the Cornell box: full update (1 light), then with 8 lights a GI
+    intensity tweak, one light moved, and a camera move within a cell."""
+    one = demo.cornell_box("SPOT", (64, 64), settings)
+    eng = engine.Engine()
+    eng.update(one)  # warm-up: shaders, tables
+
+    full = _median_update_ms(eng, one, lambda scene, i: eng.clear_cache(), repeat)
+    eight = demo.cornell_box("SPOT", (64, 64), settings)
+    base = eight.lights[0]
+    eight.lights = []
+    for k in range(8):
+        m = base.matrix.copy()
+        m[:3, 3] += [0.5 * np.cos(k), 0.5 * np.sin(k), -0.05 * k]
+        eight.lights.append(type(base)(f"Spot{k}", "SPOT", m, power=base.power / 8,
+                                       spot_size=base.spot_size, spot_blend=base.spot_blend))
+    eng8 = engine.Engine()
+    eng8.update(eight)
+
+    def tweak(scene, i):
+        scene.lights[0].gi_intensity = 1.0 + 0.1 * (i + 1)
+
+    def move(scene, i):
+        scene.lights[0].matrix = scene.lights[0].matrix.copy()
+        scene.lights[0].matrix[0, 3] += 0.01
+
+    def camera(scene, i):
+        scene.camera.view = scene.camera.view.copy()
+        scene.camera.view[0, 3] += 1e-3
+
+    return {
+        "full_update_ms": full,
+        "light_intensity_tweak_ms": _median_update_ms(eng8, eight, tweak, repeat),
+        "one_light_moved_ms": _median_update_ms(eng8, eight, move, repeat),
+        "camera_in_cell_ms": _median_update_ms(eng8, eight, camera, repeat),
+    }
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m lpv_core.bench", description=__doc__.split("\n")[0])
     p.add_argument("--quick", action="store_true", help="3 repeats at 128x128")
@@ -64,6 +116,7 @@ def main(argv: list[str] | None = None) -> int:
         w, h = args.resolution.lower().split("x")
         res = (int(w), int(h))
     out = run(repeat, res, GISettings())
+    out.update(incremental(repeat, GISettings()))
     if args.json:
         print(json.dumps(out))
     else:

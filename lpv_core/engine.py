@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import areas, cascades, geometry_volume, injection, lookup, propagation
-from .grid import Grid, fit_grid
+from .grid import Grid
 from .scene import Scene
 
 
@@ -74,6 +74,9 @@ class Engine:
     def __init__(self, raster=None):
         self._raster = raster
         self._gl = None  # GLBackend on the rasteriser's context, made on first use
+        # Incremental updates: propagated grids per light, valid while the scene key holds.
+        self._cache_key = None
+        self._cache: dict = {}
 
     @property
     def raster(self):
@@ -155,6 +158,10 @@ class Engine:
                 stats.skip("rsm", f"light '{light.name}'", reason)
             else:
                 active.append(light)
+        with Timer(stats, "change_tracking"):
+            key = scene_key(scene, chain)
+        if key != self._cache_key:
+            self._cache_key, self._cache = key, {}
         if not active:
             if not scene.lights:
                 stats.skip("lpv", "scene", "no lights")
@@ -164,7 +171,7 @@ class Engine:
         backend = self.backend(settings, stats)
         iterations = settings.iterations or auto_iterations(settings.grid_resolution,
                                                             settings.angular)
-        visibility = propagation_visibility(scene, grid, stats)
+        visibility = self._visibility(scene, grid, stats)
         if len(chain) > 1:
             return self._update_cascaded(scene, chain, active, iterations, visibility, stats, t0)
         vpl_sample = {}
@@ -172,6 +179,10 @@ class Engine:
         vpl_count = 0
         run_iterations = []
         for light in active:
+            cached = self._cached(light, stats)
+            if cached is not None:
+                per_light[light.name], vpl_sample[light.name] = cached[0], cached[2]
+                continue
             with Timer(stats, "rsm"):
                 rsm = render_rsm(self.raster, light, (lo, hi), settings.rsm_resolution)
             vpl_count += rsm.count
@@ -198,6 +209,7 @@ class Engine:
                                            backend, stats)
             with Timer(stats, "combine"):
                 per_light[light.name] = total
+            self._cache[light.name] = (light_key(light), total, None, vpl_sample[light.name])
         with Timer(stats, "combine"):
             combined = combine(grid, per_light, active, settings.intensity)
         stats.info["vpls"] = vpl_count
@@ -206,6 +218,28 @@ class Engine:
         return LPVResult(grid, combined, per_light, stats, vpl_sample, visibility)
 
 
+    def clear_cache(self) -> None:
+        """Forget cached grids: the next update recomputes everything."""
+        self._cache_key, self._cache = None, {}
+
+    def _visibility(self, scene: Scene, grid: Grid, stats: Stats | None):
+        """propagation_visibility, cached with the per-light grids (same scene key)."""
+        key = ("visibility", grid.origin, grid.cell_size)
+        if key not in self._cache:
+            self._cache[key] = propagation_visibility(scene, grid, stats)
+        elif stats is not None:
+            stats.skip("geometry_volume", f"grid {grid.cell_size:.4g} m", "unchanged: reused")
+        return self._cache[key]
+
+    def _cached(self, light, stats: Stats):
+        """(coarse grid, fine grids, VPL sample) of ``light`` if nothing it depends on changed."""
+        entry = self._cache.get(light.name)
+        if entry is None or entry[0] != light_key(light):
+            return None
+        stats.skip("rsm", f"light '{light.name}'",
+                   "unchanged since the last update: its propagated grids are reused")
+        return entry[1], entry[2], entry[3]
+
     def _update_cascaded(self, scene: Scene, chain: list, active: list, iterations: int,
                          coarse_visibility, stats: Stats, t0: float) -> LPVResult:
         """Cascaded propagation (cascades.py): finest first, each hands on what leaves it."""
@@ -213,7 +247,7 @@ class Engine:
 
         settings = scene.settings
         lo, hi = scene.bounds()
-        visibilities = [propagation_visibility(scene, g) for g in chain[:-1]]
+        visibilities = [self._visibility(scene, g, None) for g in chain[:-1]]
         visibilities.append(coarse_visibility)
         if settings.bounces > 1:
             stats.skip("bounces", "bounces 2+", "not implemented with cascades yet")
@@ -221,6 +255,11 @@ class Engine:
         vpl_count = 0
         run_iterations = []
         for light in active:
+            cached = self._cached(light, stats)
+            if cached is not None:
+                per_light[light.name], per_light_fine[light.name] = cached[0], cached[1]
+                vpl_sample[light.name] = cached[2]
+                continue
             with Timer(stats, "rsm"):
                 rsm = render_rsm(self.raster, light, (lo, hi), settings.rsm_resolution)
             vpl_count += rsm.count
@@ -249,6 +288,8 @@ class Engine:
                     carry = prop.outflow
             per_light[light.name] = totals[-1]
             per_light_fine[light.name] = totals[:-1]
+            self._cache[light.name] = (light_key(light), totals[-1], totals[:-1],
+                                       vpl_sample[light.name])
         with Timer(stats, "combine"):
             combined = combine(chain[-1], per_light, active, settings.intensity)
             fine = [(g, combine(g, {n: v[c] for n, v in per_light_fine.items()}, active,
@@ -280,8 +321,8 @@ class Engine:
         previous = first
         for _ in range(settings.bounces - 1):
             with Timer(stats, "bounces"):
-                e = lookup.irradiance(grid, previous, pos2, nrm2, angular=settings.angular,
-                                      visibility=visibility)
+                e = backend.irradiance(grid, previous, pos2, nrm2, angular=settings.angular,
+                                       visibility=visibility)
                 flux = e * area2 * refl2
                 keep = flux.max(axis=1) > 0
             if not keep.any():
@@ -303,11 +344,38 @@ class Engine:
         return total
 
 
+def scene_key(scene: Scene, chain) -> str:
+    """Digest of everything a light's propagated grid depends on besides the light itself:
+    geometry, GI reflectance, flags, areas, grid placement and the settings (not the global
+    intensity, which only re-combines)."""
+    import hashlib
+
+    h = hashlib.blake2b(digest_size=16)
+    for arr in (scene.positions, scene.normals, scene.reflectance_per_triangle(),
+                scene.flag("caster"), scene.flag("occluder")):
+        h.update(np.ascontiguousarray(arr).tobytes())
+    for area in scene.areas:
+        h.update(repr((area.type, np.asarray(area.matrix).tobytes(), area.falloff,
+                       area.intensity)).encode())
+    settings = {k: v for k, v in scene.settings.as_dict().items() if k != "intensity"}
+    h.update(repr(sorted(settings.items())).encode())
+    h.update(repr([(g.origin, g.cell_size, g.resolution) for g in chain]).encode())
+    return h.hexdigest()
+
+
+def light_key(light) -> tuple:
+    """What a light's propagated grid depends on (not gi_intensity / gi_color: combine only)."""
+    return (light.type, np.asarray(light.matrix, np.float64).tobytes(),
+            np.asarray(light.color, np.float64).tobytes(), float(light.power),
+            float(light.spot_size), float(light.spot_blend), tuple(light.size),
+            bool(light.cast_shadow))
+
+
 def _inject(backend, grid: Grid, positions, normals, flux, visibility):
-    """The backend's injection; the occlusion-aware splat (numpy) when there are occluders."""
+    """The backend's injection (occlusion-aware splat when there are occluders)."""
     if visibility is None:
         return backend.inject(grid, positions, normals, flux)
-    return injection.inject(grid, positions, normals, flux, visibility=visibility)
+    return backend.inject(grid, positions, normals, flux, visibility=visibility)
 
 
 def direction_groups(normals: np.ndarray, groups: int) -> list:
@@ -344,8 +412,6 @@ class NumpyBackend:
 
     @staticmethod
     def irradiance(*args, **kwargs):
-        from . import lookup
-
         return lookup.irradiance(*args, **kwargs)
 
     @staticmethod

@@ -256,3 +256,48 @@ def test_no_light_leaks_through_a_wall_into_a_closed_room():
     print(f"\nleak: dark room floor / lit room floor indirect = {dark / lit:.4f}")
     assert lit > 0
     assert dark <= 0.01 * lit
+
+
+def _eight_lights(settings):
+    sc = demo.cornell_box("POINT", (24, 24), settings)
+    base = sc.lights[0]
+    lights = []
+    for i in range(8):
+        m = base.matrix.copy()
+        m[:3, 3] += [0.6 * np.cos(i), 0.6 * np.sin(i), -0.1 * i]
+        lights.append(type(base)(f"L{i}", "POINT", m, power=40.0))
+    sc.lights = lights
+    return sc
+
+
+def _reused(stats):
+    return sorted(s["what"] for s in stats.skipped
+                  if s["reason"].startswith("unchanged") and s["what"].startswith("light"))
+
+
+def test_incremental_updates_recompute_only_what_changed():
+    settings = GISettings(grid_resolution=8, rsm_resolution=32, shadow_resolution=64,
+                          direction_groups=1, backend="numpy")
+    sc = _eight_lights(settings)
+    eng = engine.Engine()
+    first = eng.update(sc)
+    assert _reused(first.stats) == []
+    # A GI intensity tweak only re-combines: every light's grid is reused, result doubles.
+    sc.lights[3].gi_intensity = 2.0
+    tweak = eng.update(sc)
+    assert len(_reused(tweak.stats)) == 8
+    np.testing.assert_allclose(tweak.values - first.values,
+                               first.per_light["L3"], rtol=1e-4, atol=1e-6)
+    # Moving one light recomputes that light only.
+    sc.lights[5].matrix = sc.lights[5].matrix.copy()
+    sc.lights[5].matrix[0, 3] += 0.05
+    moved = eng.update(sc)
+    assert _reused(moved.stats) == sorted(f"light 'L{i}'" for i in range(8) if i != 5)
+    # Moving the camera (one grid fitted to the scene) changes nothing to recompute.
+    sc.camera.view = sc.camera.view.copy()
+    sc.camera.view[0, 3] += 0.01
+    assert len(_reused(eng.update(sc).stats)) == 8
+    # Changing geometry invalidates everything.
+    sc.positions = sc.positions.copy()
+    sc.positions[0, 0, 2] += 0.01
+    assert _reused(eng.update(sc).stats) == []
