@@ -1,5 +1,7 @@
 """Core LPV numerics against hand-derived values: SH, injection, propagation, lookup, scene."""
 
+import itertools
+
 import numpy as np
 import pytest
 
@@ -220,7 +222,7 @@ def test_cascades_nest_snap_and_hand_light_outwards():
     chain = cascades.place(lo, hi, 8, 3, sc.camera)
     assert [g.cell_size for g in chain] == pytest.approx(
         [chain[-1].cell_size / 4, chain[-1].cell_size / 2, chain[-1].cell_size])
-    for inner, outer in zip(chain, chain[1:]):
+    for inner, outer in itertools.pairwise(chain):
         ilo, ihi = inner.bounds()
         olo, ohi = outer.bounds()
         assert np.all(ilo >= olo - 1e-9) and np.all(ihi <= ohi + 1e-9)
