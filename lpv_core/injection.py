@@ -74,7 +74,9 @@ def visible_corners(coords: np.ndarray, idx: np.ndarray, wts: np.ndarray,
     total = out.sum(axis=0)
     original = wts.sum(axis=0)
     scale = np.divide(original, total, out=np.zeros_like(total), where=total > 0)
-    return out * scale
+    # Every corner hidden (a point boxed in by occluders at this resolution): keep the plain
+    # trilinear weights rather than lose the sample.
+    return np.where(total > 0, out * scale, wts)
 
 
 def inject(grid: Grid, positions: np.ndarray, normals: np.ndarray, flux: np.ndarray,
