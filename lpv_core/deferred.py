@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import areas, direct, lookup
+from . import areas, direct
 from .engine import Engine, LPVResult, Stats, Timer
 from .scene import Scene
 
@@ -55,13 +55,14 @@ def render(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats | None = N
                 if not recv.all():
                     stats.skip("lookup", f"{int((~recv).sum())} pixels", "gi_receiver is off")
                 e_ind = np.zeros((pos.shape[0], 3))
-                e_ind[recv] = lookup.irradiance(lpv.grid, lpv.values, pos[recv], nrm[recv],
-                                                angular=scene.settings.angular,
-                                                visibility=lpv.visibility)
+                backend = engine.backend(scene.settings)  # the lookup runs where it is fastest
+                e_ind[recv] = backend.irradiance(lpv.grid, lpv.values, pos[recv], nrm[recv],
+                                                 angular=scene.settings.angular,
+                                                 visibility=lpv.visibility)
                 for fine_grid, fine_values, fine_vis in lpv.fine:  # inner cascades add theirs
-                    e_ind[recv] += lookup.irradiance(fine_grid, fine_values, pos[recv],
-                                                     nrm[recv], angular=scene.settings.angular,
-                                                     visibility=fine_vis)
+                    e_ind[recv] += backend.irradiance(fine_grid, fine_values, pos[recv],
+                                                      nrm[recv], angular=scene.settings.angular,
+                                                      visibility=fine_vis)
                 if areas.has_transition(scene.areas):
                     e_ind *= areas.transition_factor(scene.areas, pos)
                 diff_ind[mask] = e_ind / np.pi

@@ -75,10 +75,14 @@ def gl_context():
             cache = os.path.join(_cache_root(), "mesa")
             os.makedirs(cache, exist_ok=True)
             os.environ["MESA_SHADER_CACHE_DIR"] = cache
-        try:
-            _CTX = moderngl.create_standalone_context(backend="egl")
-        except Exception:  # noqa: BLE001 - fall back to the platform's default (WGL, CGL, GLX)
-            _CTX = moderngl.create_standalone_context()
+        attempts = ({"backend": "egl", "require": 430}, {"backend": "egl"}, {})
+        for i, kwargs in enumerate(attempts):  # GL 4.3 for compute shaders where the driver
+            try:  # offers it (NVIDIA's EGL gives 3.3 unless asked), else what the platform has
+                _CTX = moderngl.create_standalone_context(**kwargs)
+                break
+            except Exception:
+                if i == len(attempts) - 1:
+                    raise
     return _CTX
 
 

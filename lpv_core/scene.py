@@ -110,7 +110,7 @@ class GISettings:
     rsm_resolution: int = 256
     occlusion: bool = True
     bounces: int = 1
-    backend: str = "numpy"
+    backend: str = "auto"  # "numpy", "gl" (moderngl compute) or "auto" (fastest per stage)
     intensity: float = 1.0  # global GI multiplier (keyframable in the add-on)
     shadow_resolution: int = 1024
 

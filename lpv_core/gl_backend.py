@@ -1,0 +1,1139 @@
+"""moderngl compute-shader (GLSL 430) backend for injection, propagation and lookup.
+
+Mirrors ``injection.inject``, ``propagation.step`` / ``propagate`` (both angular models: "sh"
+with either re-projection, the flux-conserving scale, optional visibility, first step
+unoccluded unless ``occlude_first_step``, the accumulation and the early stop; "m1" with the
+closure's bundles and the advection matrix) and ``lookup.sample`` / ``irradiance`` ("sh" and
+"m1"), with the same signatures and semantics. The shaders are generated from the numpy
+modules' own tables and constants (propagation.tables, propagation._m1_tables, closure), so a
+change there carries over; a change of the algorithm itself must be ported. Agreement: 1e-4 relative or better
+(tests/test_gl_backend.py; about 2e-7 of the grid's largest value in practice). Options not
+ported yet (``capture_outflow``, unknown keywords) run the numpy code and are counted in
+``GLBackend.fallbacks``.
+
+Module-level functions take and return numpy arrays exactly like the numpy ones. The methods
+of ``GLBackend`` keep data on the GPU between stages: ``inject`` returns a ``GLGrid`` (a
+storage buffer laid out exactly like the numpy array, (R, R, R, 3, 4) float32 in C order),
+``propagate`` takes one and reads back only the accumulated grid the engine caches per light
+(or nothing, ``readback=False``), ``irradiance`` reads back only the (M, 3) irradiance.
+Positions go up as float64 and become cell coordinates in double precision in the shaders.
+
+Injection without float atomics (they are not core GLSL): every VPL adds its 8 x 12 trilinear
+contributions to 64-bit fixed-point accumulators built from two 32-bit words, with integer
+``atomicAdd`` on the low word and a carry into the high word when the low word wraps
+(``atomicAdd`` returns the old value, so the carry is detected exactly). The sum is exact and
+independent of the order, i.e. deterministic. The scale is a power of two S with
+S x (largest single contribution) <= 2^24, so every contribution is rounded to an integer of at
+most 24 bits (float32's own precision: the only rounding is the same 2^-24 relative step a
+float32 product makes), and the totals stay far below 2^63 for any number of VPLs (2^24 x N).
+Signed values are biased by +2^24 so that every added word is non-negative (a carry then needs
+the second atomic only once per 2^7 adds); one counter per cell removes the bias exactly at
+resolve. The quantum 1/S is at most 2^-24 of the brightest contribution, and the brightest cell
+holds at least 1/8 of it (band 0 only adds), so the absolute error is below 1e-6 of the grid's
+largest value even after 10^4 adds to one cell.
+
+Memory: the "m1" step keeps 27 x 3 vec4 of arrivals per cell between its two passes
+(42 MB at 32^3, 340 MB at 64^3, 2.7 GB at 128^3).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import closure, propagation, sh
+from .grid import Grid
+from .lookup import REPROJECTION_GAIN
+
+LOCAL = 64  # invocations per work group (1-D)
+MAX_GROUPS = 65535  # GL's guaranteed GL_MAX_COMPUTE_WORK_GROUP_COUNT per dimension
+FIXED_BITS = 24  # largest contribution -> 2^24 (see the module notes)
+WORDS_PER_CELL = 25  # 12 x (low, high) + one bias counter
+
+_HEADER = """
+#version 430
+layout(local_size_x = 64) in;
+uniform uint base;  // first item of this dispatch (large inputs are dispatched in chunks)
+const float PI = 3.14159265358979;
+const float C0 = 0.886226925452758;
+const float C1 = 1.0233267079464885;
+const float SQRT_4PI = 3.5449077018110318;
+"""
+
+# World position -> cell coordinates, as grid.cell_coords(p + n x offset x cell_size), in double
+# precision (core since GLSL 4.00): whole cells ic0, the fraction fr in [0, 1] (float32 is plenty
+# once the whole cells are off) and which way the nearest cell lies. A grid 1e5 m from the
+# origin loses nothing, and the nearest-cell test (frac >= 0.5) decides as numpy's does.
+# corner_weights: injection.trilinear_corners' weights (zero outside the grid) and, when
+# use_vis, injection.visible_corners: each corner x the transmittance of the faces the step
+# from the nearest cell to it crosses, renormalised to the inside weight (the plain weights
+# where every corner is hidden). Needs R, use_vis and
+# a buffer vis[] (6, R, R, R) declared before it.
+_CELL_FN = """
+vec3 cell_coords(dvec3 p, dvec3 n, out ivec3 ic0, out ivec3 near) {
+    dvec3 u = (p - origin) * inv_cell + n * double(offset_cells) - 0.5;
+    dvec3 whole = floor(u);
+    ic0 = ivec3(clamp(whole, dvec3(-1073741824.0), dvec3(1073741824.0)));
+    dvec3 frac = u - whole;
+    near = ivec3(greaterThanEqual(frac, dvec3(0.5)));
+    return vec3(frac);
+}
+void corner_weights(vec3 fr, ivec3 ic0, ivec3 near, out float w[8]) {
+    float plain[8];
+    float original = 0.0;
+    float total = 0.0;
+    ivec3 nc = clamp(ic0 + near, ivec3(0), ivec3(R - 1));
+    uint cells = uint(R * R * R);
+    uint fc = uint((nc.x * R + nc.y) * R + nc.z);
+    for (int k = 0; k < 8; ++k) {
+        ivec3 d = ivec3((k >> 2) & 1, (k >> 1) & 1, k & 1);
+        ivec3 ic = ic0 + d;
+        bool inside = all(greaterThanEqual(ic, ivec3(0))) && all(lessThan(ic, ivec3(R)));
+        vec3 wv = mix(1.0 - fr, fr, vec3(d));
+        float wk = inside ? wv.x * wv.y * wv.z : 0.0;
+        original += wk;
+        plain[k] = wk;
+        if (use_vis != 0) {
+            for (int a = 0; a < 3; ++a) {
+                int st = d[a] - near[a];
+                if (st > 0) wk *= vis[uint(2 * a) * cells + fc];
+                else if (st < 0) wk *= vis[uint(2 * a + 1) * cells + fc];
+            }
+        }
+        w[k] = wk;
+        total += wk;
+    }
+    if (use_vis != 0) {  // every corner hidden: the plain weights rather than lose the point
+        float scale = total > 0.0 ? original / total : 0.0;
+        for (int k = 0; k < 8; ++k) w[k] = total > 0.0 ? w[k] * scale : plain[k];
+    }
+}
+"""
+
+CLEAR_SRC = _HEADER + """
+layout(std430, binding = 0) writeonly buffer Dst { uint dst[]; };
+uniform uint count;
+void main() {
+    uint i = base + gl_GlobalInvocationID.x;
+    if (i < count) dst[i] = 0u;
+}
+"""
+
+INJECT_SRC = _HEADER + """
+layout(std430, binding = 0) readonly buffer Pos { double pos[]; };  // (N, 3) world
+layout(std430, binding = 1) readonly buffer Nrm { double nrm[]; };  // (N, 3)
+layout(std430, binding = 2) readonly buffer Flx { double flx[]; };  // (N, 3) W
+layout(std430, binding = 3) buffer Acc { uint acc[]; };  // per cell: 12 x (lo, hi), count
+layout(std430, binding = 4) readonly buffer Vis { float vis[]; };  // (6, R, R, R)
+uniform uint count;
+uniform int R;
+uniform int use_vis;
+uniform dvec3 origin;
+uniform double inv_cell;
+uniform float offset_cells;
+uniform float S;
+""" + _CELL_FN + """
+void main() {
+    uint i = base + gl_GlobalInvocationID.x;
+    if (i >= count) return;
+    uint o = 3u * i;
+    dvec3 nd = dvec3(nrm[o], nrm[o + 1u], nrm[o + 2u]);
+    vec3 n = vec3(nd);
+    vec3 phi = vec3(flx[o], flx[o + 1u], flx[o + 2u]);
+    ivec3 ic0, near;
+    vec3 fr = cell_coords(dvec3(pos[o], pos[o + 1u], pos[o + 2u]), nd, ic0, near);
+    float wts[8];
+    corner_weights(fr, ic0, near, wts);
+    vec4 lobe = vec4(C0, -C1 * n.y, C1 * n.z, -C1 * n.x);
+    vec4 coef[3];
+    for (int ch = 0; ch < 3; ++ch) coef[ch] = (phi[ch] / PI) * lobe;
+    for (int k = 0; k < 8; ++k) {
+        ivec3 ic = ic0 + ivec3((k >> 2) & 1, (k >> 1) & 1, k & 1);
+        float w = wts[k];
+        if (!(w > 0.0)) continue;  // also every corner outside the grid
+        uint wb = uint((ic.x * R + ic.y) * R + ic.z) * 25u;
+        for (int ch = 0; ch < 3; ++ch) {
+            for (int j = 0; j < 4; ++j) {
+                int q = int(round(coef[ch][j] * w * S));
+                uint add = uint(q + 16777216);  // + 2^24: never negative
+                uint slot = wb + 2u * uint(ch * 4 + j);
+                uint old = atomicAdd(acc[slot], add);
+                if (old + add < old) atomicAdd(acc[slot + 1u], 1u);
+            }
+        }
+        atomicAdd(acc[wb + 24u], 1u);
+    }
+}
+"""
+
+RESOLVE_SRC = _HEADER + """
+layout(std430, binding = 0) readonly buffer Acc { uint acc[]; };
+layout(std430, binding = 1) writeonly buffer Dst { float dst[]; };
+uniform uint count;  // cells
+uniform float inv_S;
+void main() {
+    uint c = base + gl_GlobalInvocationID.x;
+    if (c >= count) return;
+    uint wb = c * 25u;
+    uint n = acc[wb + 24u];
+    uint blo = n << 24;  // bias n x 2^24 as (bhi, blo)
+    uint bhi = n >> 8;
+    for (uint j = 0u; j < 12u; ++j) {
+        uint lo = acc[wb + 2u * j];
+        uint hi = acc[wb + 2u * j + 1u];
+        uint rlo = lo - blo;
+        uint rhi = hi - bhi - (lo < blo ? 1u : 0u);
+        float sgn = 1.0;
+        if ((rhi & 0x80000000u) != 0u) {  // negative: two's complement magnitude
+            rlo = ~rlo + 1u;
+            rhi = ~rhi + (rlo == 0u ? 1u : 0u);
+            sgn = -1.0;
+        }
+        dst[c * 12u + j] = sgn * (float(rhi) * 4294967296.0 + float(rlo)) * inv_S;
+    }
+}
+"""
+
+# Propagation. The face tables (propagation.tables, float32) are baked into the source as
+# constants, one program per re-projection mode: their many exact zeros then cost nothing (about
+# half the arithmetic of a table lookup, which matters on CPU rasterisers such as llvmpipe).
+_REDUCE_FN = """
+shared vec3 red[64];
+void reduce_flux(vec3 f) {  // per work group sum -> partial[group]
+    uint l = gl_LocalInvocationID.x;
+    red[l] = f;
+    barrier();
+    for (uint s = 32u; s > 0u; s >>= 1) {
+        if (l < s) red[l] += red[l + s];
+        barrier();
+    }
+    if (l == 0u) {
+        uint g = base / 64u + gl_WorkGroupID.x;
+        partial[3u * g] = red[0].x;
+        partial[3u * g + 1u] = red[0].y;
+        partial[3u * g + 2u] = red[0].z;
+    }
+}
+"""
+
+
+def _lit(x) -> str:
+    """A GLSL literal that parses back to exactly this float32 value."""
+    return repr(float(np.float32(x)))
+
+
+def _dot(var: str, coeffs) -> str:
+    """<var, coeffs> with the zero terms left out."""
+    terms = [f"{var}.{'xyzw'[k]} * {_lit(c)}" for k, c in enumerate(coeffs) if c != 0]
+    return " + ".join(terms) if terms else "0.0"
+
+
+def _propagation_sources(reprojection: str) -> tuple[str, str]:
+    """(prepare, step) compute shaders with this mode's face tables as constants."""
+    ev, rp = propagation.tables(reprojection)  # the numpy backend's own float32 tables
+    evals = np.asarray(ev, np.float32).T.reshape(6, 5, 4)  # [direction, face, coefficient]
+    reproj = np.asarray(rp, np.float32).reshape(6, 5, 4)
+    axes = propagation.AXES.astype(int)
+    # Flux-conserving scale of a cell and colour (propagation.step): all 30 faces.
+    lines = ["float cell_scale(vec4 v) {", "    float total = 0.0;"]
+    for i in range(6):
+        for f in range(5):
+            lines.append(f"    total += max({_dot('v', evals[i, f])}, 0.0);")
+    lines += ["    float held = max(v.x, 0.0) * SQRT_4PI;",
+              "    return total > held ? held / total : 1.0;", "}"]
+    scale_fn = "\n".join(lines) + "\n"
+    prepare = _HEADER + """
+layout(std430, binding = 0) readonly buffer Cur { vec4 cur[]; };
+layout(std430, binding = 1) writeonly buffer Scale { float scale_out[]; };
+layout(std430, binding = 2) writeonly buffer Partial { float partial[]; };
+uniform uint count;  // cells
+""" + scale_fn + _REDUCE_FN + """
+void main() {
+    uint c = base + gl_GlobalInvocationID.x;
+    vec3 f = vec3(0.0);
+    if (c < count) {
+        for (uint ch = 0u; ch < 3u; ++ch) {
+            vec4 v = cur[c * 3u + ch];
+            scale_out[c * 3u + ch] = cell_scale(v);
+            f[ch] = max(v.x, 0.0);
+        }
+    }
+    reduce_flux(f);
+}
+"""
+    body = []
+    for i in range(6):
+        ax = axes[i]
+        body.append(f"        // from the neighbour at dst - ({ax[0]}, {ax[1]}, {ax[2]})")
+        body.append(f"        s = dst - ivec3({ax[0]}, {ax[1]}, {ax[2]});")
+        body.append("        if (all(greaterThanEqual(s, ivec3(0))) && all(lessThan(s, ivec3(R)))) {")
+        body.append("            sc = uint((s.x * R + s.y) * R + s.z);")
+        body.append(f"            v = use_vis != 0 ? vis[{i}u * count + sc] : 1.0;")
+        for ch in range(3):
+            body.append(f"            src = cur[sc * 3u + {ch}u];")
+            body.append(f"            k = scale_in[sc * 3u + {ch}u];")
+            for f in range(5):
+                body.append(f"            ff[{f}] = max({_dot('src', evals[i, f])}, 0.0) * k;")
+            comps = []
+            for j in range(4):
+                t = [f"ff[{f}] * {_lit(reproj[i, f, j])}" for f in range(5) if reproj[i, f, j] != 0]
+                comps.append(" + ".join(t) if t else "0.0")
+            body.append(f"            o{ch} += vec4({', '.join(comps)}) * v;")
+        body.append("        }")
+    step = _HEADER + """
+layout(std430, binding = 0) readonly buffer Cur { vec4 cur[]; };  // (R, R, R, 3) x 4
+layout(std430, binding = 1) readonly buffer ScaleIn { float scale_in[]; };
+layout(std430, binding = 2) writeonly buffer Nxt { vec4 nxt[]; };
+layout(std430, binding = 3) buffer Acc { vec4 acc[]; };
+layout(std430, binding = 4) writeonly buffer ScaleOut { float scale_out[]; };
+layout(std430, binding = 5) readonly buffer Vis { float vis[]; };  // (6, R, R, R)
+layout(std430, binding = 6) writeonly buffer Partial { float partial[]; };
+uniform uint count;  // cells
+uniform int R;
+uniform int use_vis;
+uniform int accumulate;
+""" + scale_fn + _REDUCE_FN + """
+void put(uint c, uint ch, vec4 o) {
+    uint q = c * 3u + ch;
+    nxt[q] = o;
+    if (accumulate != 0) acc[q] += o;
+    scale_out[c * 3u + ch] = cell_scale(o);
+}
+void main() {
+    uint c = base + gl_GlobalInvocationID.x;
+    vec3 fl = vec3(0.0);
+    if (c < count) {
+        ivec3 dst = ivec3(int(c) / (R * R), (int(c) / R) % R, int(c) % R);
+        vec4 o0 = vec4(0.0), o1 = vec4(0.0), o2 = vec4(0.0);
+        ivec3 s;
+        uint sc;
+        float v, k;
+        vec4 src;
+        float ff[5];
+""" + "\n".join(body) + """
+        put(c, 0u, o0);
+        put(c, 1u, o1);
+        put(c, 2u, o2);
+        fl = max(vec3(o0.x, o1.x, o2.x), 0.0);
+    }
+    reduce_flux(fl);
+}
+"""
+    return prepare, step
+
+
+# closure.moments: flux held, mean cosine r (clipped) and unit direction d of a cell's SH.
+_MOMENTS_FN = """
+void moments(vec4 c, out float held, out float r, out vec3 d) {
+    held = max(c.x, 0.0) * SQRT_4PI;
+    vec3 v = vec3(-c.w, -c.y, c.z) * FLUX_FROM_BAND1;
+    float norm = sqrt(dot(v, v));
+    r = held > 0.0 ? norm / held : 0.0;
+    d = norm > 0.0 ? v / norm : vec3(0.0);
+    r = clamp(r, 0.0, MAX_MEAN_COSINE);
+}
+"""
+
+
+def _closure_consts() -> str:
+    return (f"const float FLUX_FROM_BAND1 = {_lit(closure.FLUX_FROM_BAND1)};\n"
+            f"const float MAX_MEAN_COSINE = {_lit(closure.MAX_MEAN_COSINE)};\n")
+
+
+def _cosine_table() -> tuple[np.ndarray, float]:
+    """closure.cosine_expectation's table (n_r, n_t) float32 and its largest mean cosine."""
+    closure.cosine_expectation(np.zeros(1), np.zeros(1))  # builds the table on first use
+    rs, _ts, table = closure._TABLE
+    return np.ascontiguousarray(table, np.float32), float(rs[-1])
+
+
+def _lookup_source() -> str:
+    return _HEADER + _closure_consts() + """
+layout(std430, binding = 0) readonly buffer Values { vec4 values[]; };  // (R, R, R, 3) x 4
+layout(std430, binding = 1) readonly buffer Pos { double pos[]; };  // (M, 3) world
+layout(std430, binding = 2) readonly buffer Nrm { double nrm[]; };  // (M, 3)
+layout(std430, binding = 3) writeonly buffer Dst { float dst[]; };
+uniform uint count;
+uniform int R;
+uniform dvec3 origin;
+uniform double inv_cell;
+uniform float offset_cells;
+uniform float k_irr;  // REPROJECTION_GAIN / cell^2 (mode 1), 1 / cell^2 (mode 2)
+uniform int mode;     // 0: SH samples (M, 12), no normals; 1: irradiance "sh"; 2: "m1"
+layout(std430, binding = 4) readonly buffer Table { float table[]; };  // (n_r, n_t)
+layout(std430, binding = 5) readonly buffer Vis { float vis[]; };  // (6, R, R, R)
+uniform int use_vis;
+uniform int n_r;
+uniform int n_t;
+uniform float r_last;
+""" + _CELL_FN + _MOMENTS_FN + """
+float cosine_expectation(float r, float t) {  // closure.cosine_expectation, bilinear
+    float fr = clamp(r, 0.0, r_last) / r_last * float(n_r - 1);
+    float ft = (clamp(t, -1.0, 1.0) + 1.0) / 2.0 * float(n_t - 1);
+    int i0 = min(int(floor(fr)), n_r - 2);
+    int j0 = min(int(floor(ft)), n_t - 2);
+    float a = fr - float(i0);
+    float b = ft - float(j0);
+    int q = i0 * n_t + j0;
+    return (1.0 - a) * (1.0 - b) * table[q] + a * (1.0 - b) * table[q + n_t]
+        + (1.0 - a) * b * table[q + 1] + a * b * table[q + n_t + 1];
+}
+void main() {
+    uint i = base + gl_GlobalInvocationID.x;
+    if (i >= count) return;
+    uint o = 3u * i;
+    dvec3 nd = mode == 0 ? dvec3(0.0) : dvec3(nrm[o], nrm[o + 1u], nrm[o + 2u]);
+    vec3 n = vec3(nd);
+    ivec3 ic0, near;
+    vec3 fr = cell_coords(dvec3(pos[o], pos[o + 1u], pos[o + 2u]), nd, ic0, near);
+    float wts[8];
+    corner_weights(fr, ic0, near, wts);
+    vec4 s[3] = vec4[3](vec4(0.0), vec4(0.0), vec4(0.0));
+    for (int k = 0; k < 8; ++k) {
+        float w = wts[k];
+        if (!(w != 0.0)) continue;  // also every corner outside the grid
+        ivec3 ic = ic0 + ivec3((k >> 2) & 1, (k >> 1) & 1, k & 1);
+        uint vo = uint((ic.x * R + ic.y) * R + ic.z) * 3u;
+        s[0] += w * values[vo];
+        s[1] += w * values[vo + 1u];
+        s[2] += w * values[vo + 2u];
+    }
+    if (mode == 0) {
+        for (int ch = 0; ch < 3; ++ch) {
+            for (int j = 0; j < 4; ++j) dst[12u * i + uint(ch * 4 + j)] = s[ch][j];
+        }
+    } else if (mode == 1) {
+        vec4 lobe = vec4(C0, C1 * n.y, -C1 * n.z, C1 * n.x);  // lobe(-n)
+        for (int ch = 0; ch < 3; ++ch) dst[3u * i + uint(ch)] = max(dot(s[ch], lobe) * k_irr, 0.0);
+    } else {
+        for (int ch = 0; ch < 3; ++ch) {
+            float held, r;
+            vec3 d;
+            moments(s[ch], held, r, d);
+            float e = held * cosine_expectation(r, -dot(d, n)) * k_irr;
+            dst[3u * i + uint(ch)] = max(e, 0.0);
+        }
+    }
+}
+"""
+
+
+def _m1_sources() -> tuple[str, str]:
+    """(arrivals, gather) shaders of propagation.step_m1, its tables baked in as constants.
+
+    Arrivals, per source cell and colour: the lobe's bundles b_j = exp(kappa <d, w_j>) along
+    the q fixed directions, scaled to the flux held, each spread over the 8 neighbours its
+    direction points to (the advection matrix's non-zero entries, ~q x 8 of q x 27 x 4).
+    Gather, per destination cell: the 27 neighbours' arrivals for it x the visibility of the
+    faces crossed. Storage: 27 x 3 vec4 per cell between the two passes.
+    """
+    dirs, adv, r_max = propagation._m1_tables()
+    dirs = np.asarray(dirs, np.float32)
+    adv = np.asarray(adv, np.float32).reshape(dirs.shape[0], len(propagation.OFFSETS), 4)
+    n_off = len(propagation.OFFSETS)
+    lines = []
+    for j, w in enumerate(dirs):
+        lines.append(f"            b = exp(k * dot(d, vec3({_lit(w[0])}, {_lit(w[1])}, "
+                     f"{_lit(w[2])})));")
+        lines.append("            total += b;")
+        for k in range(n_off):
+            if np.any(adv[j, k] != 0):
+                vals = ", ".join(_lit(x) for x in adv[j, k])
+                lines.append(f"            a[{k}] += b * vec4({vals});")
+    arrivals = _HEADER + _closure_consts() + f"""
+const float R_MAX = {_lit(r_max)};
+layout(std430, binding = 0) readonly buffer Cur {{ vec4 cur[]; }};
+layout(std430, binding = 1) writeonly buffer Arr {{ vec4 arr[]; }};  // [(off x cells + c) x 3 + ch]
+uniform uint count;  // cells
+""" + _MOMENTS_FN + """
+void main() {
+    uint c = base + gl_GlobalInvocationID.x;
+    if (c >= count) return;
+    for (uint ch = 0u; ch < 3u; ++ch) {
+        vec4 a[N_OFF];
+        for (int k = 0; k < N_OFF; ++k) a[k] = vec4(0.0);
+        float held, r;
+        vec3 d;
+        moments(cur[c * 3u + ch], held, r, d);
+        float scale = 0.0;
+        if (held > 0.0) {  // empty cells send nothing
+            float rc = min(r, R_MAX);
+            float k = rc * (3.0 - rc * rc) / (1.0 - rc * rc);  // closure.kappa
+            float b, total = 0.0;
+BUNDLES
+            scale = held / total;
+        }
+        for (int k = 0; k < N_OFF; ++k) arr[(uint(k) * count + c) * 3u + ch] = a[k] * scale;
+    }
+}
+""".replace("N_OFF", str(n_off)).replace("BUNDLES", "\n".join(lines))
+    body = []
+    for k, off in enumerate(propagation.OFFSETS):
+        vis = [f"vis[{2 * a + (0 if off[a] == 1 else 1)}u * count + sc]"
+               for a in range(3) if off[a] != 0]
+        body += [f"        s = dst - ivec3({off[0]}, {off[1]}, {off[2]});",
+                 "        if (all(greaterThanEqual(s, ivec3(0))) && all(lessThan(s, ivec3(R)))) {",
+                 "            sc = uint((s.x * R + s.y) * R + s.z);",
+                 f"            v = use_vis != 0 ? {' * '.join(['1.0'] + vis)} : 1.0;",
+                 f"            q = ({k}u * count + sc) * 3u;",
+                 "            o0 += arr[q] * v;",
+                 "            o1 += arr[q + 1u] * v;",
+                 "            o2 += arr[q + 2u] * v;",
+                 "        }"]
+    gather = _HEADER + """
+layout(std430, binding = 0) readonly buffer Arr { vec4 arr[]; };
+layout(std430, binding = 1) readonly buffer Vis { float vis[]; };  // (6, R, R, R)
+layout(std430, binding = 2) writeonly buffer Nxt { vec4 nxt[]; };
+layout(std430, binding = 3) buffer Acc { vec4 acc[]; };
+layout(std430, binding = 4) writeonly buffer Partial { float partial[]; };
+uniform uint count;  // cells
+uniform int R;
+uniform int use_vis;
+uniform int accumulate;
+""" + _REDUCE_FN + """
+void main() {
+    uint c = base + gl_GlobalInvocationID.x;
+    vec3 fl = vec3(0.0);
+    if (c < count) {
+        ivec3 dst = ivec3(int(c) / (R * R), (int(c) / R) % R, int(c) % R);
+        vec4 o0 = vec4(0.0), o1 = vec4(0.0), o2 = vec4(0.0);
+        ivec3 s;
+        uint sc, q;
+        float v;
+""" + "\n".join(body) + """
+        nxt[c * 3u] = o0;
+        nxt[c * 3u + 1u] = o1;
+        nxt[c * 3u + 2u] = o2;
+        if (accumulate != 0) {
+            acc[c * 3u] += o0;
+            acc[c * 3u + 1u] += o1;
+            acc[c * 3u + 2u] += o2;
+        }
+        fl = max(vec3(o0.x, o1.x, o2.x), 0.0);
+    }
+    reduce_flux(fl);
+}
+"""
+    return arrivals, gather
+
+ADD_SCALED_SRC = _HEADER + """
+layout(std430, binding = 0) readonly buffer Src { float src[]; };
+layout(std430, binding = 1) buffer Dst { float dst[]; };
+uniform uint count;
+uniform float weight;
+void main() {
+    uint i = base + gl_GlobalInvocationID.x;
+    if (i < count) dst[i] += weight * src[i];
+}
+"""
+
+
+class GLGrid:
+    """An (R, R, R, 3, 4) float32 SH grid held in a shader storage buffer."""
+
+    def __init__(self, buffer, resolution: int, owned: bool = True):
+        self.buffer = buffer
+        self.resolution = int(resolution)
+        self.owned = owned  # False for a backend's scratch buffer: release() leaves it alone
+
+    @property
+    def shape(self) -> tuple[int, int, int, int, int]:
+        r = self.resolution
+        return (r, r, r, 3, 4)
+
+    @property
+    def cells(self) -> int:
+        return self.resolution**3
+
+    @property
+    def nbytes(self) -> int:
+        return self.cells * 48
+
+    def read(self) -> np.ndarray:
+        """Read back to a numpy array (R, R, R, 3, 4) float32."""
+        data = self.buffer.read(size=self.nbytes)
+        return np.frombuffer(data, np.float32).reshape(self.shape).copy()
+
+    def release(self) -> None:
+        if self.buffer is not None and self.owned:
+            self.buffer.release()
+        self.buffer = None
+
+    def __del__(self):
+        with contextlib.suppress(Exception):  # the context may already be gone at exit
+            self.release()
+
+
+@dataclass
+class GLPropagationResult(propagation.PropagationResult):
+    """``propagation.PropagationResult`` plus the accumulated grid on the GPU (or None)."""
+
+    gpu: GLGrid | None = None
+
+
+class GLBackend:
+    """Compute shaders on one moderngl context (the process's shared one by default)."""
+
+    name = "gl"
+
+    def __init__(self, ctx=None):
+        if ctx is None:
+            from .raster import gl_context
+
+            ctx = gl_context()
+        self.ctx = ctx
+        self._programs: dict = {}
+        self._scratch: dict = {}
+        self.fallbacks = 0  # calls answered by the numpy code (modes not ported yet)
+
+    # -- plumbing -------------------------------------------------------------------------------
+    def _program(self, name: str, reprojection: str | None = None):
+        key = (name, reprojection)
+        prog = self._programs.get(key)
+        if prog is None:
+            if name == "lookup":
+                src = _lookup_source()
+            elif name in ("m1_arrivals", "m1_gather"):
+                src = _m1_sources()[name == "m1_gather"]
+            elif reprojection is None:
+                src = _SOURCES[name]
+            else:
+                prepare, step = _propagation_sources(reprojection)
+                src = prepare if name == "prepare" else step
+            prog = self.ctx.compute_shader(src)
+            self._programs[key] = prog
+        return prog
+
+    def _buffer(self, name: str, nbytes: int):
+        """A scratch buffer of at least ``nbytes`` (kept and reused between calls)."""
+        nbytes = max(int(nbytes), 4)
+        buf = self._scratch.get(name)
+        if buf is None or buf.size < nbytes:
+            if buf is not None:
+                buf.release()
+            buf = self.ctx.buffer(reserve=nbytes)
+            self._scratch[name] = buf
+        return buf
+
+    def _run(self, prog, count: int, buffers) -> None:
+        """Bind ``buffers`` to storage bindings 0.. and run ``count`` invocations in chunks."""
+        for i, buf in enumerate(buffers):
+            buf.bind_to_storage_buffer(i)
+        if prog.get("count", None) is not None:
+            prog["count"].value = int(count)
+        groups = -(-int(count) // LOCAL)
+        done = 0
+        while done < groups:
+            g = min(groups - done, MAX_GROUPS)
+            prog["base"].value = done * LOCAL
+            prog.run(g, 1, 1)
+            done += g
+        self.ctx.memory_barrier()
+
+    def _upload_f64(self, name: str, array) -> object:
+        """(N, 3) array -> scratch buffer of float64 (no copy when it already is one)."""
+        a = np.ascontiguousarray(array, np.float64)
+        buf = self._buffer(name, a.nbytes)
+        buf.write(a)
+        return buf
+
+    @staticmethod
+    def _set_grid(prog, grid: Grid, offset_cells: float) -> None:
+        prog["R"].value = int(grid.resolution)
+        prog["origin"].value = tuple(float(v) for v in grid.origin)
+        prog["inv_cell"].value = 1.0 / float(grid.cell_size)
+        prog["offset_cells"].value = float(offset_cells)
+
+    def upload(self, values: np.ndarray) -> GLGrid:
+        """A GPU copy of an (R, R, R, 3, 4) grid."""
+        values = np.ascontiguousarray(values, np.float32)
+        r = values.shape[0]
+        if values.shape != (r, r, r, 3, 4):
+            raise ValueError(f"grid values must be (R, R, R, 3, 4), not {values.shape}")
+        return GLGrid(self.ctx.buffer(values.tobytes()), r)
+
+    def _as_gpu(self, values) -> tuple[GLGrid, bool]:
+        """(grid on the GPU, whether it was uploaded here and must be released)."""
+        if isinstance(values, GLGrid):
+            return values, False
+        return self.upload(values), True
+
+    def zeros(self, resolution: int) -> GLGrid:
+        buf = self.ctx.buffer(reserve=resolution**3 * 48)
+        self._run(self._program("clear"), resolution**3 * 12, [buf])
+        return GLGrid(buf, resolution)
+
+    def finish(self) -> None:
+        self.ctx.finish()
+
+    # -- injection ------------------------------------------------------------------------------
+    def inject(self, grid: Grid, positions: np.ndarray, normals: np.ndarray,
+               flux: np.ndarray, offset_cells: float = 0.5, visibility=None) -> GLGrid:
+        """``injection.inject`` leaving the result on the GPU (``.read()`` gives the array).
+
+        With ``visibility`` (6, R, R, R) the splat leaves out corners behind occluders
+        (injection.visible_corners)."""
+        r = grid.resolution
+        cells = r**3
+        out = GLGrid(self.ctx.buffer(reserve=cells * 48), r)
+        n = int(np.asarray(positions).shape[0])
+        if n == 0:
+            self._run(self._program("clear"), cells * 12, [out.buffer])
+            return out
+        flux = np.ascontiguousarray(flux, np.float64)
+        cmax = float(np.abs(flux).max()) / np.pi * sh.C1  # |lobe| <= C1 (> C0)
+        scale = fixed_point_scale(cmax)
+        inputs = [self._upload_f64(name, a) for name, a in
+                  (("vpl_pos", positions), ("vpl_nrm", normals), ("vpl_flux", flux))]
+        acc = self._buffer("inject_acc", cells * WORDS_PER_CELL * 4)
+        self._run(self._program("clear"), cells * WORDS_PER_CELL, [acc])
+        prog = self._program("inject")
+        self._set_grid(prog, grid, offset_cells)
+        prog["S"].value = scale
+        vis = self._visibility(visibility, r)
+        prog["use_vis"].value = int(vis is not None)
+        vis = vis if vis is not None else self._buffer("no_vis", 4)
+        self._run(prog, n, inputs + [acc, vis])
+        prog = self._program("resolve")
+        prog["inv_S"].value = 1.0 / scale
+        self._run(prog, cells, [acc, out.buffer])
+        self.ctx.finish()  # the grid is ready on return: per-stage timings stay honest
+        return out
+
+    # -- propagation ----------------------------------------------------------------------------
+
+    def _read_flux(self, partial, groups: int) -> np.ndarray:
+        p = np.frombuffer(partial.read(size=groups * 12), np.float32).reshape(groups, 3)
+        return p.sum(axis=0, dtype=np.float64) * sh.SQRT_4PI
+
+    def _step_into(self, cur: GLGrid, scale_in, nxt: GLGrid, scale_out, acc: GLGrid | None,
+                   vis, reprojection: str) -> np.ndarray:
+        cells = cur.cells
+        groups = -(-cells // LOCAL)
+        partial = self._buffer("partial_b", groups * 12)
+        prog = self._program("step", reprojection)
+        prog["R"].value = cur.resolution
+        prog["use_vis"].value = int(vis is not None)
+        prog["accumulate"].value = int(acc is not None)
+        vis_buf = vis if vis is not None else self._buffer("no_vis", 4)
+        acc_buf = acc.buffer if acc is not None else self._buffer("no_acc", 4)
+        self._run(prog, cells, [cur.buffer, scale_in, nxt.buffer, acc_buf, scale_out, vis_buf,
+                                partial])
+        return self._read_flux(partial, groups)
+
+    def _visibility(self, visibility, r: int):
+        if visibility is None:
+            return None
+        if not isinstance(visibility, np.ndarray) and hasattr(visibility, "bind_to_storage_buffer"):
+            return visibility  # already a GPU buffer (6, R, R, R) float32
+        vis = np.ascontiguousarray(visibility, np.float32)
+        if vis.shape != (6, r, r, r):
+            raise ValueError(f"visibility must be (6, {r}, {r}, {r}), not {vis.shape}")
+        buf = self._buffer("visibility", vis.nbytes)
+        buf.write(vis.tobytes())
+        return buf
+
+    def _prepare_scale(self, cur: GLGrid, reprojection: str, name: str):
+        """Per-cell scale into scratch ``name``; returns it and the flux per colour of ``cur``."""
+        cells = cur.cells
+        groups = -(-cells // LOCAL)
+        scale = self._buffer(name, cells * 12)
+        partial = self._buffer("partial_a", groups * 12)
+        self._run(self._program("prepare", reprojection), cells, [cur.buffer, scale, partial])
+        return scale, self._read_flux(partial, groups)
+
+    def _m1_into(self, cur: GLGrid, nxt: GLGrid, acc: GLGrid | None, vis) -> np.ndarray:
+        """One propagation.step_m1 from ``cur`` into ``nxt`` (acc += nxt); moved flux."""
+        cells = cur.cells
+        groups = -(-cells // LOCAL)
+        arr = self._buffer("m1_arrivals", cells * len(propagation.OFFSETS) * 48)
+        self._run(self._program("m1_arrivals"), cells, [cur.buffer, arr])
+        partial = self._buffer("partial_b", groups * 12)
+        prog = self._program("m1_gather")
+        prog["R"].value = cur.resolution
+        prog["use_vis"].value = int(vis is not None)
+        prog["accumulate"].value = int(acc is not None)
+        vis_buf = vis if vis is not None else self._buffer("no_vis", 4)
+        acc_buf = acc.buffer if acc is not None else self._buffer("no_acc", 4)
+        self._run(prog, cells, [arr, vis_buf, nxt.buffer, acc_buf, partial])
+        return self._read_flux(partial, groups)
+
+    def step(self, values, visibility=None, reprojection: str = "kd10",
+             angular: str = "sh") -> GLGrid:
+        """``propagation.step`` on the GPU: the newly arrived intensity as a GLGrid."""
+        if angular not in ("sh", "m1"):
+            return self.upload(self._numpy_step(values, visibility, reprojection, angular))
+        if angular == "sh":
+            _check_reprojection(reprojection)
+        cur, owned = self._as_gpu(values)
+        try:
+            r = cur.resolution
+            vis = self._visibility(visibility, r)
+            out = GLGrid(self.ctx.buffer(reserve=cur.nbytes), r)
+            if angular == "m1":
+                self._m1_into(cur, out, None, vis)
+            else:
+                scale_a, _ = self._prepare_scale(cur, reprojection, "scale_a")
+                scale_b = self._buffer("scale_b", cur.cells * 12)
+                self._step_into(cur, scale_a, out, scale_b, None, vis, reprojection)
+            return out
+        finally:
+            if owned:
+                cur.release()
+
+    def _numpy_step(self, values, visibility, reprojection, angular, **extra):
+        self.fallbacks += 1
+        values = values.read() if isinstance(values, GLGrid) else values
+        return propagation.step(values, visibility, reprojection, angular, **extra)
+
+    def propagate(self, injected, iterations: int, min_fraction: float = 1e-3,
+                  visibility=None, reprojection: str = "kd10", angular: str = "sh",
+                  occlude_first_step: bool = False, capture_outflow: bool = False,
+                  readback: bool = True, keep_gpu: bool = False,
+                  **extra) -> propagation.PropagationResult:
+        """``propagation.propagate`` on the GPU (same early stop, same accumulation).
+
+        ``injected`` is a numpy grid or a GLGrid (left untouched). The first step ignores
+        ``visibility`` unless ``occlude_first_step``. ``values`` is read back unless
+        ``readback`` is False; ``gpu`` holds the accumulated grid when ``keep_gpu``.
+        ``capture_outflow`` and any keyword this backend does not know yet run the numpy code
+        (counted in ``fallbacks``), so that the engine keeps working while the numpy
+        reference moves ahead.
+        """
+        if angular not in ("sh", "m1") or capture_outflow or extra:
+            self.fallbacks += 1
+            values = injected.read() if isinstance(injected, GLGrid) else injected
+            if capture_outflow:
+                extra["capture_outflow"] = True
+            return propagation.propagate(values, iterations, min_fraction, visibility,
+                                         reprojection, angular=angular,
+                                         occlude_first_step=occlude_first_step, **extra)
+        if angular == "sh":
+            _check_reprojection(reprojection)
+        src, owned = self._as_gpu(injected)
+        try:
+            r = src.resolution
+            nbytes = src.nbytes
+            acc = GLGrid(self.ctx.buffer(reserve=nbytes), r)
+            self.ctx.copy_buffer(acc.buffer, src.buffer, size=nbytes)
+            vis = self._visibility(visibility, r)
+            prep = "kd10" if angular == "m1" else reprojection  # m1: only the flux is used
+            scale_cur, flux0 = self._prepare_scale(src, prep, "scale_a")
+            scale_nxt = self._buffer("scale_b", src.cells * 12)
+            ping = [GLGrid(self._buffer(name, nbytes), r, owned=False) for name in ("ping", "pong")]
+            total0 = float(flux0.astype(np.float32).sum())
+            fraction = 1.0 if total0 > 0 else 0.0
+            done = 0
+            early = False
+            cur = src
+            for k in range(max(int(iterations), 0)):
+                if total0 <= 0:
+                    early = True
+                    break
+                nxt = ping[k % 2]
+                step_vis = vis if (done > 0 or occlude_first_step) else None
+                if angular == "m1":
+                    moved = self._m1_into(cur, nxt, acc, step_vis)
+                else:
+                    moved = self._step_into(cur, scale_cur, nxt, scale_nxt, acc, step_vis,
+                                            reprojection)
+                    scale_cur, scale_nxt = scale_nxt, scale_cur
+                cur = nxt
+                done += 1
+                fraction = float(moved.sum()) / total0
+                if fraction < min_fraction:
+                    early = True
+                    break
+            values = acc.read() if readback else None
+            if not keep_gpu:
+                acc.release()
+                acc = None
+            return GLPropagationResult(values, done, flux0.astype(np.float32), fraction, early,
+                                       gpu=acc)
+        finally:
+            if owned:
+                src.release()
+
+    def flux(self, values) -> np.ndarray:
+        """Mirror of ``propagation.flux``: flux per colour held by a grid."""
+        cur, owned = self._as_gpu(values)
+        try:
+            _, f = self._prepare_scale(cur, "kd10", "scale_a")
+            return f
+        finally:
+            if owned:
+                cur.release()
+
+    def add_scaled(self, dst: GLGrid, src: GLGrid, weight: float) -> None:
+        """dst += weight x src on the GPU (the engine's per-light combine)."""
+        prog = self._program("add_scaled")
+        prog["weight"].value = float(weight)
+        self._run(prog, src.cells * 12, [src.buffer, dst.buffer])
+
+    # -- lookup ---------------------------------------------------------------------------------
+    def _lookup(self, grid: Grid, values, positions, normals, offset_cells: float, mode: int,
+                visibility=None):
+        positions = np.asarray(positions, np.float64)
+        m = positions.shape[0]
+        width = 12 if mode == 0 else 3
+        if m == 0:
+            return np.zeros((0, width), np.float64)
+        g, owned = self._as_gpu(values)
+        try:
+            pbuf = self._upload_f64("recv_pos", positions)
+            nbuf = self._upload_f64("recv_nrm", normals) if normals is not None else pbuf
+            out = self._buffer("lookup_out", m * width * 4)
+            prog = self._program("lookup")
+            self._set_grid(prog, grid, offset_cells)
+            gain = REPROJECTION_GAIN if mode == 1 else 1.0
+            prog["k_irr"].value = float(gain / grid.cell_size**2)
+            prog["mode"].value = mode
+            table = self._cosine_table(prog)
+            vis = self._visibility(visibility, grid.resolution)
+            prog["use_vis"].value = int(vis is not None)
+            vis = vis if vis is not None else self._buffer("no_vis", 4)
+            self._run(prog, m, [g.buffer, pbuf, nbuf, out, table, vis])
+            res = np.frombuffer(out.read(size=m * width * 4), np.float32).reshape(m, width)
+            return res.astype(np.float64)
+        finally:
+            if owned:
+                g.release()
+
+    def _cosine_table(self, prog):
+        buf = self._scratch.get("cosine_table")
+        if buf is None:
+            table, r_last = _cosine_table()
+            buf = self._scratch["cosine_table"] = self.ctx.buffer(table)
+            self._table_shape = (table.shape[0], table.shape[1], r_last)
+        n_r, n_t, r_last = self._table_shape
+        prog["n_r"].value = n_r
+        prog["n_t"].value = n_t
+        prog["r_last"].value = r_last
+        return buf
+
+    def sample(self, grid: Grid, values, positions: np.ndarray,
+               visibility=None) -> np.ndarray:
+        """Mirror of ``lookup.sample``: trilinear SH (M, 3, 4)."""
+        return self._lookup(grid, values, positions, None, 0.0, 0,
+                            visibility).reshape(-1, 3, 4)
+
+    def irradiance(self, grid: Grid, values, positions: np.ndarray, normals: np.ndarray,
+                   offset_cells: float = 0.5, angular: str = "sh", visibility=None,
+                   **extra) -> np.ndarray:
+        """Mirror of ``lookup.irradiance``: indirect irradiance (M, 3) in W/m^2
+        (unknown keywords: the numpy code)."""
+        if angular not in ("sh", "m1") or extra:
+            from . import lookup
+
+            self.fallbacks += 1
+            values = values.read() if isinstance(values, GLGrid) else values
+            return lookup.irradiance(grid, values, positions, normals, offset_cells,
+                                     angular=angular, visibility=visibility, **extra)
+        return self._lookup(grid, values, positions, normals, offset_cells,
+                            1 if angular == "sh" else 2, visibility)
+
+    def discard(self, obj) -> None:
+        """Free a GLGrid this backend returned (no-op for anything else)."""
+        if isinstance(obj, GLGrid):
+            obj.release()
+
+    def release(self) -> None:
+        """Free the backend's programs and scratch buffers."""
+        for obj in list(self._scratch.values()) + list(self._programs.values()):
+            obj.release()
+        self._scratch.clear()
+        self._programs.clear()
+
+
+_SOURCES = {
+    "clear": CLEAR_SRC,
+    "inject": INJECT_SRC,
+    "resolve": RESOLVE_SRC,
+    "add_scaled": ADD_SCALED_SRC,
+}
+
+
+def fixed_point_scale(cmax: float) -> float:
+    """Power of two S with S x cmax <= 2^FIXED_BITS (1 for an all-zero or non-finite input)."""
+    if not (cmax > 0.0) or not math.isfinite(cmax):
+        return 1.0
+    e = FIXED_BITS - math.ceil(math.log2(cmax))
+    while math.ldexp(cmax, e) > 2.0**FIXED_BITS:  # log2 rounding at exact powers of two
+        e -= 1
+    return math.ldexp(1.0, max(min(e, 126), -126))
+
+
+# -- module-level mirrors of the numpy functions (shared backend on the process's context) --------
+_BACKEND: GLBackend | None = None
+
+
+def backend() -> GLBackend:
+    """The process's GLBackend on ``raster.gl_context()``."""
+    global _BACKEND
+    if _BACKEND is None:
+        _BACKEND = GLBackend()
+    return _BACKEND
+
+
+def _check_reprojection(reprojection: str) -> None:
+    if reprojection not in propagation.REPROJECTIONS:
+        raise ValueError(f"reprojection must be one of {propagation.REPROJECTIONS}, "
+                         f"not {reprojection!r}")
+
+
+def _read_release(g: GLGrid) -> np.ndarray:
+    try:
+        return g.read()
+    finally:
+        g.release()
+
+
+def inject(grid: Grid, positions: np.ndarray, normals: np.ndarray, flux: np.ndarray,
+           offset_cells: float = 0.5, visibility: np.ndarray | None = None) -> np.ndarray:
+    """``injection.inject`` on the GPU: (R, R, R, 3, 4) float32."""
+    return _read_release(backend().inject(grid, positions, normals, flux, offset_cells,
+                                          visibility))
+
+
+def step(values: np.ndarray, visibility: np.ndarray | None = None,
+         reprojection: str = "kd10", angular: str = "sh") -> np.ndarray:
+    """``propagation.step`` on the GPU."""
+    return _read_release(backend().step(values, visibility, reprojection, angular))
+
+
+def propagate(injected: np.ndarray, iterations: int, min_fraction: float = 1e-3,
+              visibility: np.ndarray | None = None, reprojection: str = "kd10",
+              angular: str = "sh", occlude_first_step: bool = False,
+              capture_outflow: bool = False, **extra) -> propagation.PropagationResult:
+    """``propagation.propagate`` on the GPU."""
+    return backend().propagate(injected, iterations, min_fraction, visibility, reprojection,
+                               angular, occlude_first_step, capture_outflow, **extra)
+
+
+def flux(values: np.ndarray) -> np.ndarray:
+    """``propagation.flux`` on the GPU (float64 sum of the per-work-group float32 sums)."""
+    return backend().flux(values)
+
+
+def sample(grid: Grid, values: np.ndarray, positions: np.ndarray,
+           visibility: np.ndarray | None = None) -> np.ndarray:
+    """``lookup.sample`` on the GPU: (M, 3, 4) float64."""
+    return backend().sample(grid, values, positions, visibility)
+
+
+def irradiance(grid: Grid, values: np.ndarray, positions: np.ndarray, normals: np.ndarray,
+               offset_cells: float = 0.5, angular: str = "sh",
+               visibility: np.ndarray | None = None, **extra) -> np.ndarray:
+    """``lookup.irradiance`` on the GPU: (M, 3) float64."""
+    return backend().irradiance(grid, values, positions, normals, offset_cells, angular,
+                                visibility, **extra)
+
+
+# -- backend choice ---------------------------------------------------------------------------------
+_AUTO: dict = {}  # angular model -> auto_backend record
+
+
+STAGES = ("inject", "propagate", "lookup")
+
+
+def measure(resolution: int = 16, vpls: int = 16384, receivers: int = 65536,
+            iterations: int = 4, repeat: int = 3, gl: GLBackend | None = None,
+            angular: str = "sh") -> dict:
+    """{stage: {backend: ms}}: the fastest of ``repeat`` interleaved runs of each stage on a
+    small random grid (the minimum is the figure least disturbed by other load on the
+    machine). GL figures include the transfers the engine makes."""
+    from . import injection, lookup
+
+    if gl is None:
+        gl = backend()
+    rng = np.random.default_rng(0)
+    g = Grid((0.0, 0.0, 0.0), 1.0, resolution)
+    pos = rng.uniform(1.0, resolution - 1.0, (vpls, 3))
+    nrm = rng.normal(size=(vpls, 3))
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    flux = rng.uniform(0.0, 1.0, (vpls, 3))
+    rpos = rng.uniform(1.0, resolution - 1.0, (receivers, 3))
+    rnrm = rng.normal(size=(receivers, 3))
+    rnrm /= np.linalg.norm(rnrm, axis=1, keepdims=True)
+    injected = injection.inject(g, pos, nrm, flux)
+    kw = {"angular": angular}
+    values = propagation.propagate(injected, iterations, **kw).values
+    runs = {
+        ("inject", "numpy"): lambda: injection.inject(g, pos, nrm, flux),
+        ("inject", "gl"): lambda: gl.inject(g, pos, nrm, flux).release(),
+        ("propagate", "numpy"): lambda: propagation.propagate(injected, iterations, 0.0, **kw),
+        ("propagate", "gl"): lambda: gl.propagate(injected, iterations, 0.0, **kw),
+        ("lookup", "numpy"): lambda: lookup.irradiance(g, values, rpos, rnrm, **kw),
+        ("lookup", "gl"): lambda: gl.irradiance(g, values, rpos, rnrm, **kw),
+    }
+    times = {key: [] for key in runs}
+    for fn in runs.values():
+        fn()  # warm-up: shader compilation, scratch buffers
+    for _ in range(repeat):
+        for key, fn in runs.items():
+            t0 = time.perf_counter()
+            fn()
+            times[key].append((time.perf_counter() - t0) * 1000.0)
+    out: dict = {stage: {} for stage in STAGES}
+    for (stage, name), t in times.items():
+        out[stage][name] = round(float(min(t)), 3)
+    return out
+
+
+def auto_backend(gl: GLBackend | None = None, angular: str = "sh") -> dict:
+    """Where each stage runs fastest on this machine for this angular model, measured once
+    per process (and model, on first use): {"backend": "numpy" | "gl" | "mixed",
+    "stages": {stage: backend}, "ms": measure()}."""
+    if angular not in _AUTO:
+        try:
+            ms = measure(gl=gl, angular=angular)
+            stages = {stage: min(ms[stage], key=ms[stage].get) for stage in STAGES}
+            names = set(stages.values())
+            _AUTO[angular] = {"backend": names.pop() if len(names) == 1 else "mixed",
+                              "stages": stages, "ms": ms, "angular": angular}
+        except Exception as exc:  # noqa: BLE001 - no usable GL context: numpy it is
+            _AUTO[angular] = {"backend": "numpy", "stages": dict.fromkeys(STAGES, "numpy"),
+                              "ms": {}, "angular": angular, "reason": f"gl unavailable: {exc}"}
+    return _AUTO[angular]
+
+
+class MixedBackend:
+    """Each stage on the backend that measured fastest for it (``auto_backend``); a grid
+    crosses from GL to numpy by one readback, from numpy to GL by one upload."""
+
+    def __init__(self, stages: dict, backends: dict):
+        self.stages = dict(stages)
+        self._backends = backends
+        self.name = "mixed(" + ", ".join(f"{k}={v}" for k, v in self.stages.items()) + ")"
+
+    def inject(self, *args, **kwargs):
+        return self._backends[self.stages["inject"]].inject(*args, **kwargs)
+
+    def propagate(self, injected, *args, **kwargs):
+        be = self._backends[self.stages["propagate"]]
+        if isinstance(injected, GLGrid) and not isinstance(be, GLBackend):
+            injected = injected.read()
+        return be.propagate(injected, *args, **kwargs)
+
+    def irradiance(self, *args, **kwargs):
+        return self._backends[self.stages["lookup"]].irradiance(*args, **kwargs)
+
+    @staticmethod
+    def discard(obj) -> None:
+        if isinstance(obj, GLGrid):
+            obj.release()
+
+
+def auto_select(gl: GLBackend | None, numpy_backend, angular: str = "sh"):
+    """(backend object for settings.backend = "auto", the auto_backend record)."""
+    choice = auto_backend(gl, angular) if gl is not None else {
+        "backend": "numpy", "stages": dict.fromkeys(STAGES, "numpy"), "ms": {},
+        "reason": "gl unavailable"}
+    backends = {"numpy": numpy_backend, "gl": gl}
+    if choice["backend"] == "mixed":
+        return MixedBackend(choice["stages"], backends), choice
+    return backends[choice["backend"]], choice

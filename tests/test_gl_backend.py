@@ -1,0 +1,277 @@
+"""The moderngl compute backend against the numpy reference (runs on Mesa llvmpipe: no GPU).
+
+Agreement is checked as assert_allclose(gl, numpy, rtol=1e-4, atol=1e-4 x max|numpy|): every
+value within 1e-4 of itself or of the grid's largest value (values that cancel to near zero
+can only be compared to the grid's scale). The figures are printed (pytest -s).
+"""
+
+import numpy as np
+import pytest
+
+from lpv_core import deferred, demo, engine, injection, lookup, propagation
+from lpv_core.grid import Grid
+from lpv_core.scene import GISettings
+
+RTOL = 1e-4
+
+
+@pytest.fixture(scope="module")
+def gl():
+    try:
+        from lpv_core import gl_backend
+
+        be = gl_backend.backend()
+        be.zeros(2).release()  # compiles and runs a compute shader
+    except Exception as exc:  # noqa: BLE001 - no GL 4.3 context on this machine
+        pytest.skip(f"no OpenGL 4.3 compute context: {exc}")
+    return gl_backend
+
+
+def _agree(got, ref, what=""):
+    got = np.asarray(got, np.float64)
+    ref = np.asarray(ref, np.float64)
+    assert got.shape == ref.shape, (what, got.shape, ref.shape)
+    scale = float(np.abs(ref).max()) if ref.size else 0.0
+    err = float(np.abs(got - ref).max()) / scale if scale > 0 else float(np.abs(got).max())
+    big = np.abs(ref) > 1e-2 * scale
+    elem = float((np.abs(got - ref)[big] / np.abs(ref)[big]).max()) if big.any() else 0.0
+    print(f"{what}: max|gl-np|/max|np| = {err:.2e}, max rel (|np| > 1% max) = {elem:.2e}")
+    np.testing.assert_allclose(got, ref, rtol=RTOL, atol=RTOL * scale, err_msg=what)
+    return err
+
+
+def _vpls(grid, n, rng, spread=1.0):
+    """n random VPLs, some near or beyond the grid's border (their flux partly leaves)."""
+    r = grid.resolution
+    lo = grid.origin_array - spread * grid.cell_size
+    pos = lo + rng.uniform(0.0, r + 2 * spread, (n, 3)) * grid.cell_size
+    nrm = rng.normal(size=(n, 3))
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    flux = rng.uniform(0.0, 2.0, (n, 3)) * rng.choice([1e-3, 1.0, 10.0], (n, 1))
+    return pos, nrm, flux
+
+
+def _grid(r, seed=0, far=False):
+    rng = np.random.default_rng(seed)
+    origin = rng.uniform(-3.0, 3.0, 3) + (np.array([1e5, -1e5, 3e4]) if far else 0.0)
+    return Grid(tuple(origin), float(rng.uniform(0.05, 0.7)), r)
+
+
+def _visibility(r, rng):
+    """(6, R, R, R) face transmittances: random, with fully blocking walls."""
+    vis = rng.uniform(0.0, 1.0, (6, r, r, r)).astype(np.float32)
+    vis[rng.uniform(size=vis.shape) < 0.2] = 0.0
+    vis[rng.uniform(size=vis.shape) < 0.3] = 1.0
+    return vis
+
+
+@pytest.mark.parametrize("occluded", [False, True])
+@pytest.mark.parametrize("r", [5, 8, 13, 16, 32])
+def test_injection_agrees(gl, r, occluded):
+    g = _grid(r, seed=r)
+    rng = np.random.default_rng(r)
+    pos, nrm, flux = _vpls(g, 3000, rng)
+    vis = _visibility(r, rng) if occluded else None
+    if occluded:  # boxed-in points (every corner hidden) keep their plain weights
+        vis[:, :2] = 0.0
+    ref = injection.inject(g, pos, nrm, flux, visibility=vis)
+    got = gl.inject(g, pos, nrm, flux, visibility=vis)
+    assert got.dtype == np.float32 and got.shape == ref.shape
+    _agree(got, ref, f"inject {r}^3 occluded={occluded}")
+    np.testing.assert_allclose(propagation.flux(got), propagation.flux(ref), rtol=1e-6)
+
+
+def test_injection_is_exact_and_order_independent_at_any_scale(gl):
+    g = _grid(12, seed=4, far=True)  # 1e5 m from the origin
+    rng = np.random.default_rng(4)
+    pos, nrm, flux = _vpls(g, 4000, rng, spread=0.0)
+    first = gl.inject(g, pos, nrm, flux)
+    perm = rng.permutation(len(pos))
+    again = gl.inject(g, pos[perm], nrm[perm], flux[perm])
+    np.testing.assert_array_equal(first, again)  # integer sums: no order dependence
+    for k in (1e-9, 1e8):  # the fixed-point scale follows the flux
+        _agree(gl.inject(g, pos, nrm, flux * k), injection.inject(g, pos, nrm, flux * k),
+               f"inject flux x {k:g}")
+    empty = gl.inject(g, pos[:0], nrm[:0], flux[:0])
+    assert empty.shape == g.shape and not empty.any()
+
+
+MODELS = [("sh", "kd10"), ("sh", "ray"), ("m1", "kd10")]  # (angular, reprojection)
+
+
+@pytest.mark.parametrize(("angular", "reprojection"), MODELS)
+@pytest.mark.parametrize("occluded", [False, True])
+@pytest.mark.parametrize("r", [5, 12, 17])
+def test_step_agrees(gl, angular, reprojection, occluded, r):
+    rng = np.random.default_rng(r)
+    values = rng.normal(size=(r, r, r, 3, 4)).astype(np.float32)
+    values[..., 0] = np.abs(values[..., 0]) * 2.0  # mostly positive band 0, peaked lobes too
+    values[0, 1, 2] = 0.0  # empty cells send nothing
+    values[1, 1, 1, :, 0] = -0.5  # negative band 0: nothing either
+    vis = rng.uniform(0.0, 1.0, (6, r, r, r)).astype(np.float32) if occluded else None
+    ref = propagation.step(values, vis, reprojection, angular)
+    got = gl.step(values, vis, reprojection, angular)
+    _agree(got, ref, f"step {r}^3 {angular}/{reprojection} vis={occluded}")
+
+
+def test_step_never_gains_energy(gl):
+    rng = np.random.default_rng(7)
+    values = rng.normal(size=(6, 6, 6, 3, 4)).astype(np.float32)
+    values[..., 0] = np.abs(values[..., 0])
+    for angular, reprojection in MODELS:
+        out = gl.step(values, reprojection=reprojection, angular=angular)
+        assert (propagation.flux(out) <= propagation.flux(values) * (1 + 1e-6)).all()
+
+
+@pytest.mark.parametrize(("angular", "reprojection"), MODELS)
+@pytest.mark.parametrize("occluded", [None, "first step open", "all steps"])
+@pytest.mark.parametrize("r", [7, 16, 20])
+def test_propagation_agrees(gl, angular, reprojection, occluded, r):
+    g = _grid(r, seed=r)
+    rng = np.random.default_rng(100 + r)
+    injected = injection.inject(g, *_vpls(g, 2000, rng, spread=0.0))
+    vis = rng.uniform(0.3, 1.0, (6, r, r, r)).astype(np.float32) if occluded else None
+    kw = {"visibility": vis, "reprojection": reprojection, "angular": angular}
+    if occluded == "all steps":
+        kw["occlude_first_step"] = True
+    ref = propagation.propagate(injected, r // 2, **kw)
+    got = gl.propagate(injected, r // 2, **kw)
+    _agree(got.values, ref.values, f"propagate {r}^3 x {ref.iterations} {angular}/"
+                                   f"{reprojection} occlusion: {occluded}")
+    assert got.iterations == ref.iterations
+    assert got.stopped_early == ref.stopped_early
+    assert got.remaining_fraction == pytest.approx(ref.remaining_fraction, rel=RTOL)
+    np.testing.assert_allclose(got.injected_flux, ref.injected_flux, rtol=1e-5)  # f32 sums
+
+
+def test_propagation_early_stop_and_edge_cases_agree(gl):
+    g = _grid(10, seed=3)
+    rng = np.random.default_rng(3)
+    injected = injection.inject(g, *_vpls(g, 500, rng, spread=0.0))
+    for kw in ({"iterations": 50, "min_fraction": 0.05}, {"iterations": 0},
+               {"iterations": 3, "min_fraction": 0.0},
+               {"iterations": 50, "min_fraction": 0.05, "angular": "m1"}):
+        ref = propagation.propagate(injected, **kw)
+        got = gl.propagate(injected, **kw)
+        assert (got.iterations, got.stopped_early) == (ref.iterations, ref.stopped_early), kw
+        _agree(got.values, ref.values, f"propagate {kw}")
+    zero = np.zeros_like(injected)
+    for iterations in (0, 4):
+        ref = propagation.propagate(zero, iterations)
+        got = gl.propagate(zero, iterations)
+        assert (got.iterations, got.stopped_early, got.remaining_fraction) == \
+            (ref.iterations, ref.stopped_early, ref.remaining_fraction)
+        assert not got.values.any()
+    with pytest.raises(ValueError):
+        gl.propagate(injected, 2, reprojection="nope")
+
+
+def test_propagation_stays_on_the_gpu_between_stages(gl):
+    be = gl.backend()
+    g = _grid(9, seed=9)
+    pos, nrm, flux = _vpls(g, 800, np.random.default_rng(9), spread=0.0)
+    on_gpu = be.inject(g, pos, nrm, flux)  # a GLGrid: no readback
+    assert isinstance(on_gpu, gl.GLGrid)
+    res = be.propagate(on_gpu, 4, readback=False, keep_gpu=True)
+    assert res.values is None and isinstance(res.gpu, gl.GLGrid)
+    ref = propagation.propagate(injection.inject(g, pos, nrm, flux), 4)
+    _agree(res.gpu.read(), ref.values, "inject -> propagate on the GPU")
+    on_gpu.release()
+    res.gpu.release()
+
+
+@pytest.mark.parametrize("r", [6, 16, 19])
+def test_lookup_agrees(gl, r):
+    g = _grid(r, seed=r, far=(r == 19))
+    rng = np.random.default_rng(r)
+    values = rng.normal(size=(r, r, r, 3, 4)).astype(np.float32)
+    values[..., 0] = np.abs(values[..., 0]) * 3.0
+    m = 5000
+    pos = g.origin_array + rng.uniform(-1.0, r + 1.0, (m, 3)) * g.cell_size  # some outside
+    nrm = rng.normal(size=(m, 3))
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    vis = _visibility(r, rng)
+    _agree(gl.sample(g, values, pos), lookup.sample(g, values, pos), f"sample {r}^3")
+    _agree(gl.sample(g, values, pos, vis), lookup.sample(g, values, pos, vis),
+           f"sample {r}^3 occluded")
+    for angular in ("sh", "m1"):
+        for v in (None, vis):
+            ref = lookup.irradiance(g, values, pos, nrm, angular=angular, visibility=v)
+            got = gl.irradiance(g, values, pos, nrm, angular=angular, visibility=v)
+            assert got.dtype == ref.dtype and got.shape == ref.shape
+            _agree(got, ref, f"irradiance {r}^3 {angular} occluded={v is not None}")
+    assert gl.irradiance(g, values, pos[:0], nrm[:0]).shape == (0, 3)
+
+
+@pytest.mark.parametrize("angular", ["sh", "m1"])
+def test_cornell_box_end_to_end_agrees(gl, angular):
+    # Engine defaults otherwise (occlusion by the geometry volume, direction groups).
+    settings = GISettings(grid_resolution=24, rsm_resolution=96, shadow_resolution=128,
+                          angular=angular, iterations=12)
+    results = {}
+    eng = engine.Engine()
+    for backend in ("numpy", "gl"):
+        scene = demo.cornell_box("SPOT", (48, 48), settings.updated(backend=backend))
+        res = eng.update(scene)
+        assert res.stats.info["backend"] == backend
+        results[backend] = (scene, res)
+    (scene, ref), (_, got) = results["numpy"], results["gl"]
+    assert got.stats.info["iterations"] == ref.stats.info["iterations"]
+    assert got.per_light.keys() == ref.per_light.keys()
+    for name in ref.per_light:
+        _agree(got.per_light[name], ref.per_light[name], f"Cornell box {angular} light '{name}'")
+    _agree(got.values, ref.values, f"Cornell box {angular} LPV")
+    # Lookup on the camera's G-buffer through both backends.
+    frame = eng.raster.render(scene.camera.view, scene.camera.projection, 48, 48)
+    pos = frame.position[frame.covered]
+    nrm = frame.normal[frame.covered].astype(np.float64)
+    e_ref = lookup.irradiance(ref.grid, ref.values, pos, nrm, angular=angular)
+    e_gl = eng.backend(scene.settings.updated(backend="gl")).irradiance(
+        got.grid, got.values, pos, nrm, angular=angular)
+    _agree(e_gl, e_ref, f"Cornell box {angular} G-buffer irradiance")
+    passes = deferred.render(eng, scene, got)
+    assert np.isfinite(passes["Diffuse Indirect"]).all()
+
+
+def test_engine_backend_choice(gl):
+    eng = engine.Engine()
+    settings = GISettings()
+    assert eng.backend(settings.updated(backend="numpy")).name == "numpy"
+    assert eng.backend(settings.updated(backend="gl")).name == "gl"
+    stats = engine.Stats()
+    chosen = eng.backend(settings.updated(backend="auto"), stats)
+    auto = stats.info["backend_auto"]
+    print(f"auto backend on this machine: {auto}")
+    assert auto["backend"] in ("numpy", "gl", "mixed")
+    assert set(auto["stages"].values()) <= {"numpy", "gl"}
+    assert chosen.name == stats.info["backend"]
+    if auto["backend"] != "mixed":
+        assert chosen.name == auto["backend"]
+    assert auto["angular"] == settings.angular
+    assert gl.auto_backend(angular=settings.angular) is gl.auto_backend(angular=settings.angular)
+    # A mixed choice hands grids across (GL -> numpy by readback) and agrees with numpy.
+    mixed = gl.MixedBackend({"inject": "gl", "propagate": "numpy", "lookup": "gl"},
+                            {"numpy": engine.NUMPY_BACKEND, "gl": gl.backend()})
+    g = _grid(9, seed=11)
+    pos, nrm, flux = _vpls(g, 500, np.random.default_rng(11), spread=0.0)
+    injected = mixed.inject(g, pos, nrm, flux)
+    prop = mixed.propagate(injected, 3)
+    mixed.discard(injected)
+    _agree(prop.values, propagation.propagate(injection.inject(g, pos, nrm, flux), 3).values,
+           "mixed backend")
+    with pytest.raises(ValueError, match="backend"):
+        eng.backend(settings.updated(backend="cuda"))
+
+
+def test_options_not_ported_fall_back_to_numpy(gl):
+    be = gl.backend()
+    g = _grid(8, seed=8)
+    injected = injection.inject(g, *_vpls(g, 300, np.random.default_rng(8), spread=0.0))
+    before = be.fallbacks
+    ref = propagation.propagate(injected, 3, capture_outflow=True)
+    got = gl.propagate(injected, 3, capture_outflow=True)
+    assert be.fallbacks == before + 1
+    _agree(got.values, ref.values, "propagate capture_outflow (numpy fallback)")
+    np.testing.assert_array_equal(got.outflow, ref.outflow)
+    with pytest.raises(ValueError):
+        gl.step(injected, angular="nope")
