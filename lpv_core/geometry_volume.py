@@ -34,7 +34,8 @@ def surfels(positions: np.ndarray, spacing: float, with_index: bool = False):
     area2 = np.linalg.norm(cross, axis=1)
     normal = cross / np.where(area2 > 0, area2, 1.0)[:, None]
     longest = np.max(np.linalg.norm(np.stack([e1, e2, p[:, 2] - p[:, 1]], 1), axis=2), axis=1)
-    k = np.clip(np.ceil(longest / max(spacing, 1e-30)), 1, 64).astype(np.int64)
+    # (an edge that is an exact multiple of the spacing must not get one more split by rounding)
+    k = np.clip(np.ceil(longest / max(spacing, 1e-30) - 1e-6), 1, 64).astype(np.int64)
     out_p, out_n, out_a, out_i = [], [], [], []
     for kk in np.unique(k):
         sel = np.nonzero(k == kk)[0]
@@ -74,7 +75,9 @@ def face_transmittance(grid: Grid, positions, normals, areas) -> np.ndarray:
         for axis in range(3):
             u, v = [a for a in range(3) if a != axis]
             weight = np.abs(normals[:, axis]) * areas / (s * s)
-            plane = np.rint(rel[:, axis]).astype(np.int64)
+            # Nearest plane; a surfel half-way between two (common by construction) goes to the
+            # lower one whatever the rounding, so scaling or moving the scene changes nothing.
+            plane = np.floor(rel[:, axis] + 0.5 - 1e-6).astype(np.int64)
             fu = rel[:, u] - 0.5
             fv = rel[:, v] - 0.5
             iu0 = np.floor(fu).astype(np.int64)

@@ -67,7 +67,7 @@ const float SQRT_4PI = 3.5449077018110318;
 # World position -> cell coordinates, as grid.cell_coords(p + n x offset x cell_size), in double
 # precision (core since GLSL 4.00): whole cells ic0, the fraction fr in [0, 1] (float32 is plenty
 # once the whole cells are off) and which way the nearest cell lies. A grid 1e5 m from the
-# origin loses nothing, and the nearest-cell test (frac >= 0.5) decides as numpy's does.
+# origin loses nothing, and the nearest-cell test (frac > 0.5 + 1e-3) decides as numpy's does.
 # corner_weights: injection.trilinear_corners' weights (zero outside the grid) and, when
 # use_vis, injection.visible_corners: each corner x the transmittance of the faces the step
 # from the nearest cell to it crosses, renormalised to the inside weight (the plain weights
@@ -79,7 +79,7 @@ vec3 cell_coords(dvec3 p, dvec3 n, out ivec3 ic0, out ivec3 near) {
     dvec3 whole = floor(u);
     ic0 = ivec3(clamp(whole, dvec3(-1073741824.0), dvec3(1073741824.0)));
     dvec3 frac = u - whole;
-    near = ivec3(greaterThanEqual(frac, dvec3(0.5)));
+    near = ivec3(greaterThan(frac, dvec3(0.5 + 1e-3)));  // injection.visible_corners' tie rule
     return vec3(frac);
 }
 void corner_weights(vec3 fr, ivec3 ic0, ivec3 near, out float w[8]) {

@@ -54,7 +54,11 @@ def visible_corners(coords: np.ndarray, idx: np.ndarray, wts: np.ndarray,
         return wts
     r = resolution
     base = np.floor(coords).astype(np.int64)
-    near = (coords - base >= 0.5).astype(np.int64)  # (N, 3) nearest corner's offsets
+    # (N, 3) nearest corner's offsets. Points exactly half-way are common by construction (a
+    # VPL half a cell off a surface on a half-cell plane): a tolerance keeps the choice from
+    # flipping with rounding when the scene is scaled or moved (RSM positions come back from a
+    # float32 target: ~1e-5 cells of noise at 128^3).
+    near = (coords - base > 0.5 + 1e-3).astype(np.int64)
     cell = np.clip(base + near, 0, r - 1)
     vis = visibility.reshape(6, -1)
     flat_cell = (cell[:, 0] * r + cell[:, 1]) * r + cell[:, 2]
