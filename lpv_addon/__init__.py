@@ -1,13 +1,38 @@
-"""Blender glue for LPV GI: properties, panels, operators, extraction and the batch CLI."""
+"""Blender glue for LPV GI: properties, panels, operators, overlay, live engine, extraction
+and the batch CLI.
+
+``register`` installs properties, operators, panels, app handlers, the refresh timer and the
+viewport draw handler; ``unregister`` removes all of them, stops the worker process and drops
+every GPU resource, so enabling and disabling the add-on leaves nothing behind.
+"""
+
+_MODULES = ("properties", "operators", "ui", "handlers")
+
+
+def _modules():
+    import importlib
+
+    return [importlib.import_module(f"{__name__}.{name}") for name in _MODULES]
 
 
 def register() -> None:
-    from . import properties
-
-    properties.register()
+    done = []
+    try:
+        for module in _modules():
+            module.register()
+            done.append(module)
+    except Exception:
+        for module in reversed(done):
+            module.unregister()
+        raise
 
 
 def unregister() -> None:
-    from . import properties
-
-    properties.unregister()
+    errors = []
+    for module in reversed(_modules()):
+        try:
+            module.unregister()
+        except (RuntimeError, ValueError, AttributeError) as exc:  # keep removing the rest
+            errors.append(f"{module.__name__}: {exc}")
+    if errors:
+        raise RuntimeError("LPV GI unregister: " + "; ".join(errors))

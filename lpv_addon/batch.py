@@ -97,10 +97,22 @@ def _write_json_atomic(path: Path, data: dict) -> None:
     os.replace(tmp, path)
 
 
+def _ensure_properties() -> None:
+    """Register Scene/Light/Object/Material.lpv when the add-on is not enabled (the CLI), so
+    the .blend's GI settings, flags and their animation (keyframed intensity) are read."""
+    import bpy
+
+    if not hasattr(bpy.types.Scene, "lpv"):
+        from . import properties
+
+        properties.register()
+
+
 def open_scene(args) -> object:
     """Load the .blend (or build the demo) and return the bpy scene to render."""
     import bpy
 
+    _ensure_properties()
     if args.demo:
         if args.blend:
             raise BatchError("give either a .blend file or --demo, not both")

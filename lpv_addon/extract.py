@@ -76,9 +76,15 @@ def extract_scene(
     def count(key: str) -> None:
         dropped[key] += 1
 
+    areas: list = []
     for inst in depsgraph.object_instances:
         ob = inst.object
         kind = ob.type
+        if kind == "EMPTY":
+            area = area_from_object(ob, inst) if _visible(inst, ob, render_visibility) else None
+            if area is not None:
+                areas.append(area)
+            continue
         if kind not in MESH_LIKE and kind != "LIGHT":
             if kind in UNSUPPORTED:
                 count("unsupported_objects")
@@ -107,7 +113,8 @@ def extract_scene(
     with timer.phase("make_scene"):
         result = core.scene.make_scene(
             positions, normals, mat_index, geo.materials, lights, camera, settings,
-            object_index=obj_index, object_names=geo.object_names,
+            object_index=obj_index, object_names=geo.object_names, areas=areas,
+            **geo.flags(obj_index),
         )
     for key, value in dropped.items():
         result.dropped[key] = result.dropped.get(key, 0) + value
@@ -147,6 +154,7 @@ class _GeometryCollector:
         self._image_means: dict = {}
         self.object_names: list[str] = []
         self._object_ids: dict[str, int] = {}
+        self.object_flags: list[tuple[bool, bool, bool]] = []  # caster, occluder, receiver
 
     def add(self, ob, matrix: np.ndarray, count) -> None:
         """Add one evaluated mesh-like object instance with its world matrix."""
@@ -164,6 +172,7 @@ class _GeometryCollector:
         oid = self._object_ids.setdefault(ob.name, len(self.object_names))
         if oid == len(self.object_names):
             self.object_names.append(ob.name)
+            self.object_flags.append(object_gi_flags(ob))
         self.chunks.append((pos, nrm, matrix, mat, oid))
 
     def _local_arrays(self, ob):
@@ -196,9 +205,19 @@ class _GeometryCollector:
                 m = core.scene.Material("(none)", np.array(DEFAULT_ALBEDO, np.float32))
             else:
                 m = core.scene.Material(mat.name, material_albedo(mat, self._image_means))
+                _apply_bleed(m, mat)
             mid = self._material_ids[key] = len(self.materials)
             self.materials.append(m)
         return mid
+
+    def flags(self, object_index: np.ndarray) -> dict:
+        """Per-triangle caster/occluder/receiver arrays from Object.lpv (None: all on)."""
+        table = np.array(self.object_flags or [(True, True, True)], bool).reshape(-1, 3)
+        out = {}
+        for i, name in enumerate(("caster", "occluder", "receiver")):
+            if not table[:, i].all():
+                out[name] = table[object_index, i] if object_index.size else None
+        return out
 
     def arrays(self):
         """World-space (positions, normals, material, object index): each instance is
@@ -475,6 +494,46 @@ def _srgb_to_linear(c: np.ndarray) -> np.ndarray:
     return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
 
 
+def _apply_bleed(m, mat) -> None:
+    """Material.lpv: bleed colour (when used) and bleed intensity into the core material."""
+    props = getattr(mat, "lpv", None)
+    if props is None or not hasattr(props, "bleed_intensity"):
+        return
+    if props.use_bleed_color:
+        m.bleed_color = np.array(props.bleed_color[:3], np.float32)
+    m.bleed_intensity = float(props.bleed_intensity)
+
+
+# ------------------------------------------------------------------------------- GI flags
+
+
+def object_gi_flags(ob) -> tuple[bool, bool, bool]:
+    """(caster, occluder, receiver) from Object.lpv (all on without the add-on's properties).
+    Instances take the flags of the instanced object."""
+    props = getattr(ob, "lpv", None)
+    if props is None or not hasattr(props, "gi_caster"):
+        return True, True, True
+    return bool(props.gi_caster), bool(props.gi_occluder), bool(props.gi_receiver)
+
+
+def area_from_object(ob, inst) -> core.scene.Area | None:
+    """A GI area from an Empty whose ``lpv.area_type`` is CLIP or TRANSITION: its box is the
+    Empty's cube display, [-size, size]^3 in local space, under the instance's world matrix."""
+    props = getattr(ob, "lpv", None)
+    kind = getattr(props, "area_type", "NONE") if props is not None else "NONE"
+    if kind not in core.scene.AREA_TYPES:
+        return None
+    size = float(getattr(ob, "empty_display_size", 1.0))
+    matrix = np.array(inst.matrix_world, np.float64) @ np.diag([size, size, size, 1.0])
+    if not np.isfinite(matrix).all() or abs(np.linalg.det(matrix[:3, :3])) < 1e-30:
+        return None
+    return core.scene.Area(
+        name=ob.name, type=kind, matrix=matrix, falloff=float(props.area_falloff),
+        intensity=float(props.area_intensity),
+        tint=np.array(props.area_tint[:3], np.float32),
+    )
+
+
 # ----------------------------------------------------------------------------------- lights
 
 
@@ -503,9 +562,11 @@ def light_from_object(ob: bpy.types.Object, matrix: np.ndarray) -> core.scene.Li
             area = wx * wy * (math.pi / 4.0 if light.shape in ("DISK", "ELLIPSE") else 1.0)
             power *= area
     gi = 1.0
+    gi_color = np.ones(3, np.float32)
     props = getattr(light, "lpv", None)
     if props is not None and hasattr(props, "gi_intensity"):
         gi = float(props.gi_intensity)
+        gi_color = np.array(props.gi_color[:3], np.float32)
     values = np.concatenate([color, [power, gi], matrix.ravel()])
     if not np.isfinite(values).all():
         raise ValueError(
@@ -523,6 +584,7 @@ def light_from_object(ob: bpy.types.Object, matrix: np.ndarray) -> core.scene.Li
         radius=float(getattr(light, "shadow_soft_size", 0.0)),
         size=size,
         gi_intensity=gi,
+        gi_color=gi_color,
         cast_shadow=bool(getattr(light, "use_shadow", True)),
     )
 

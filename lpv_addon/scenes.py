@@ -26,10 +26,13 @@ __all__ = [
     "BUILDERS",
     "SCENES",
     "build",
+    "city",
     "cornell_box",
+    "library",
     "point_room",
     "save_scene",
     "sun_yard",
+    "sunlit_room",
 ]
 
 Color = tuple[float, float, float]
@@ -343,10 +346,203 @@ def sun_yard(resolution: Sequence[int] = (128, 128), *, shader: str = "DIFFUSE",
     return _facts(scene, [lamp])
 
 
+def _instance(
+    scene: bpy.types.Scene, name: str, mesh: bpy.types.Mesh, location: Sequence[float],
+    scale: Sequence[float] = (1.0, 1.0, 1.0), rotation_z_deg: float = 0.0,
+) -> bpy.types.Object:
+    """An object sharing ``mesh`` (a linked duplicate), placed, scaled and turned about Z."""
+    ob = bpy.data.objects.new(name, mesh)
+    ob.location = location
+    ob.scale = scale
+    ob.rotation_euler = (0.0, 0.0, math.radians(rotation_z_deg))
+    scene.collection.objects.link(ob)
+    return ob
+
+
+def _unit_box_mesh(name: str, material: bpy.types.Material) -> bpy.types.Mesh:
+    """A 1 m box mesh from (-0.5, -0.5, 0) to (0.5, 0.5, 1), normals out (scale it per object)."""
+    verts, faces = _box((-0.5, -0.5, 0.0), (0.5, 0.5, 1.0))
+    mesh = bpy.data.meshes.new(name)
+    mesh.from_pydata(verts, [], faces)
+    mesh.validate()
+    mesh.update()
+    mesh.materials.append(material)
+    return mesh
+
+
+def city(resolution: Sequence[int] = (128, 128), *, shader: str = "DIFFUSE",
+         new_file: bool = True, seed: int = 5) -> dict:
+    """An outdoor city block: a 200 m ground (x, y in [-100, 100]) with 8 x 8 blocks of
+    buildings 4 to 30 m tall (fixed pseudo-random layout from ``seed``) along 7 m streets,
+    a low 5 W/m^2 sun (15 deg elevation, from the north-west), camera 45 m up beyond the
+    south-west corner looking across the district. Returns the scene's facts."""
+    import random
+
+    rng = random.Random(seed)
+    scene = _new_scene("city", resolution, new_file)
+    ground = _material("Asphalt", (0.30, 0.30, 0.30), shader)
+    facades = [
+        _material("Plaster", (0.75, 0.70, 0.60), shader),
+        _material("Brick", (0.55, 0.30, 0.22), shader),
+        _material("Concrete", (0.55, 0.55, 0.55), shader),
+        _material("BlueGlass", (0.25, 0.35, 0.50), shader),
+        _material("Sandstone", (0.80, 0.68, 0.45), shader),
+    ]
+    _mesh_object(scene, "Ground", _box((-100.0, -100.0, -0.5), (100.0, 100.0, 0.0), ["+z"]),
+                 ground)
+    meshes = [_unit_box_mesh(f"Building_{m.name}", m) for m in facades]
+    block, street = 18.0, 7.0
+    start = -4 * (block + street) + street / 2  # blocks span [-96.5, 96.5]
+    count = 0
+    for i in range(8):
+        for j in range(8):
+            x0, y0 = start + i * (block + street), start + j * (block + street)
+            # Split each block into 1 x 1, 1 x 2 or 2 x 2 lots, one building per lot.
+            nx, ny = rng.choice([(1, 1), (1, 2), (2, 1), (2, 2)])
+            lx, ly = block / nx, block / ny
+            for a in range(nx):
+                for b in range(ny):
+                    w = lx * rng.uniform(0.65, 0.9)
+                    d = ly * rng.uniform(0.65, 0.9)
+                    h = rng.choice([rng.uniform(4.0, 12.0), rng.uniform(8.0, 20.0),
+                                    rng.uniform(15.0, 30.0)])
+                    cx = x0 + (a + 0.5) * lx
+                    cy = y0 + (b + 0.5) * ly
+                    count += 1
+                    _instance(scene, f"Building{count:03d}", rng.choice(meshes), (cx, cy, 0.0),
+                              (w, d, h))
+    # Local -Z rotated 75 deg about X points 15 deg below the horizon, then turned 35 deg.
+    lamp = _light(scene, "Sun", "SUN", 5.0, (0.0, 0.0, 50.0), rotation_deg=(75.0, 0.0, 215.0))
+    cam = _camera(scene, (-118.0, -112.0, 45.0), (-5.0, 5.0, 0.0), lens_mm=30.0)
+    cam.data.clip_end = 500.0
+    return _facts(scene, [lamp])
+
+
+def sunlit_room(resolution: Sequence[int] = (128, 128), *, shader: str = "DIFFUSE",
+                new_file: bool = True) -> dict:
+    """A closed 5 x 4 x 2.8 m room (inside x in [-2.5, 2.5], y in [-2, 2], z in [0, 2.8])
+    built from solid 0.2 m walls, floor and roof slabs, with a 1.8 x 1.3 m window in the
+    +y wall. A 6 W/m^2 sun 35 deg above the horizon shines in through the window onto a red
+    rug; the outside of the walls is sunlit too (light that must not leak in). Camera
+    inside the -x/-y corner. Returns the scene's facts."""
+    scene = _new_scene("sunlit_room", resolution, new_file)
+    wall = _material("Wall", (0.78, 0.76, 0.72), shader)
+    floor_mat = _material("Floor", (0.50, 0.36, 0.24), shader)
+    rug = _material("Rug", (0.70, 0.12, 0.10), shader)
+    wood = _material("Wood", (0.55, 0.40, 0.25), shader)
+    fabric = _material("Fabric", (0.20, 0.35, 0.55), shader)
+    t = 0.2
+    x0, x1, y0, y1, z1 = -2.5, 2.5, -2.0, 2.0, 2.8
+    wx0, wx1, wz0, wz1 = -0.9, 0.9, 0.9, 2.2  # window opening in the +y wall
+    _mesh_object(scene, "FloorSlab", _box((x0 - t, y0 - t, -t), (x1 + t, y1 + t, 0.0)), floor_mat)
+    _mesh_object(scene, "Roof", _box((x0 - t, y0 - t, z1), (x1 + t, y1 + t, z1 + t)), wall)
+    walls = _merge(
+        _box((x0 - t, y0, 0.0), (x0, y1, z1)),  # -x
+        _box((x1, y0, 0.0), (x1 + t, y1, z1)),  # +x
+        _box((x0 - t, y0 - t, 0.0), (x1 + t, y0, z1)),  # -y
+        # +y wall around the window: below, above, left, right of the opening
+        _box((x0 - t, y1, 0.0), (x1 + t, y1 + t, wz0)),
+        _box((x0 - t, y1, wz1), (x1 + t, y1 + t, z1)),
+        _box((x0 - t, y1, wz0), (wx0, y1 + t, wz1)),
+        _box((wx1, y1, wz0), (x1 + t, y1 + t, wz1)),
+    )
+    _mesh_object(scene, "Walls", walls, wall)
+    _mesh_object(scene, "Rug", _box((-1.2, -1.2, 0.0), (1.2, 0.8, 0.02)), rug)
+    legs = [
+        _box((x - 0.03, y - 0.03, 0.0), (x + 0.03, y + 0.03, 0.72))
+        for x in (-0.55, 0.55) for y in (-0.35, 0.35)
+    ]
+    _mesh_object(scene, "Table", _merge(_box((-0.6, -0.4, 0.72), (0.6, 0.4, 0.77)), *legs),
+                 wood, location=(1.6, -1.1, 0.0), rotation_z_deg=8.0)
+    sofa = _merge(_box((-1.0, -0.45, 0.0), (1.0, 0.45, 0.45)),
+                  _box((-1.0, -0.45, 0.45), (1.0, -0.25, 0.95)))
+    _mesh_object(scene, "Sofa", sofa, fabric, location=(-0.2, -1.5, 0.0))
+    _mesh_object(scene, "Cabinet", _box((-0.25, -0.6, 0.0), (0.25, 0.6, 1.1)), wood,
+                 location=(2.2, 0.6, 0.0))
+    # Local -Z rotated -55 deg about X travels towards -y, 35 deg below the horizon.
+    lamp = _light(scene, "Sun", "SUN", 6.0, (0.0, 6.0, 6.0), rotation_deg=(-55.0, 0.0, 18.0))
+    _camera(scene, (-2.25, -1.75, 1.55), (0.6, 1.0, 0.7), lens_mm=16.0)
+    return _facts(scene, [lamp])
+
+
+def library(resolution: Sequence[int] = (128, 128), *, shader: str = "DIFFUSE",
+            new_file: bool = True, seed: int = 11) -> dict:
+    """A real-world-style interior with thousands of objects: a 16 x 10 x 4 m reading room
+    (x in [-8, 8], y in [-5, 5]) with 10 bookcases of 5 shelves holding about 2900 books
+    (separate objects sharing six book meshes), reading tables and chairs, lit by four
+    250 W point lights under the ceiling; camera at eye height at the -x end. Returns the
+    scene's facts (``objects`` lists every mesh object)."""
+    import random
+
+    rng = random.Random(seed)
+    scene = _new_scene("library", resolution, new_file)
+    wall = _material("Wall", (0.80, 0.77, 0.70), shader)
+    floor_mat = _material("Parquet", (0.45, 0.30, 0.18), shader)
+    ceiling = _material("Ceiling", (0.85, 0.85, 0.85), shader)
+    wood = _material("DarkWood", (0.30, 0.18, 0.10), shader)
+    green = _material("TableTop", (0.15, 0.40, 0.20), shader)
+    book_colors = [(0.60, 0.10, 0.08), (0.10, 0.20, 0.50), (0.15, 0.40, 0.15),
+                   (0.70, 0.60, 0.35), (0.35, 0.20, 0.40), (0.80, 0.78, 0.70)]
+    books = [_unit_box_mesh(f"Book{i}", _material(f"Binding{i}", c, shader))
+             for i, c in enumerate(book_colors)]
+    lo, hi = (-8.0, -5.0, 0.0), (8.0, 5.0, 4.0)
+    _mesh_object(scene, "Floor", _box(lo, hi, ["-z"], inward=True), floor_mat)
+    _mesh_object(scene, "Ceiling", _box(lo, hi, ["+z"], inward=True), ceiling)
+    _mesh_object(scene, "Walls", _box(lo, hi, ["-x", "+x", "-y", "+y"], inward=True), wall)
+    # Bookcases: 2 m wide, 0.4 m deep, 2.4 m high, 5 shelves, facing +-y in two rows.
+    case_w, case_d, case_h, shelves = 2.0, 0.4, 2.4, 5
+    case_parts = [_box((-case_w / 2, -case_d / 2, 0.0), (case_w / 2, -case_d / 2 + 0.03, case_h))]
+    case_parts += [_box((sx - 0.02, -case_d / 2, 0.0), (sx + 0.02, case_d / 2, case_h))
+                   for sx in (-case_w / 2, case_w / 2)]
+    case_parts += [_box((-case_w / 2, -case_d / 2, z), (case_w / 2, case_d / 2, z + 0.03))
+                   for z in [k * case_h / shelves for k in range(shelves)] + [case_h - 0.03]]
+    case_geo = _merge(*case_parts)
+    n_books = 0
+    placements = [(x, y, 0.0) for x in (-5.0, -2.5, 0.0, 2.5, 5.0) for y in (-4.75,)]
+    placements += [(x, y, 180.0) for x in (-5.0, -2.5, 0.0, 2.5, 5.0) for y in (4.75,)]
+    for c, (cx, cy, rot) in enumerate(placements):
+        _mesh_object(scene, f"Bookcase{c:02d}", case_geo, wood, location=(cx, cy, 0.0),
+                     rotation_z_deg=rot)
+        sign = 1.0 if rot == 0.0 else -1.0
+        for k in range(shelves):
+            z = k * case_h / shelves + 0.03
+            x = -case_w / 2 + 0.03
+            while True:
+                w = rng.uniform(0.02, 0.05)
+                if x + w > case_w / 2 - 0.03:
+                    break
+                h = rng.uniform(0.18, min(0.34, case_h / shelves - 0.06))
+                d = rng.uniform(0.16, 0.3)
+                n_books += 1
+                bx = cx + sign * (x + w / 2)
+                by = cy + sign * (-case_d / 2 + 0.03 + d / 2)
+                _instance(scene, f"Book{n_books:04d}", rng.choice(books), (bx, by, z),
+                          (w * 0.95, d, h), rotation_z_deg=rot)
+                x += w
+    for t, tx in enumerate((-4.0, 0.0, 4.0)):
+        legs = [_box((x - 0.04, y - 0.04, 0.0), (x + 0.04, y + 0.04, 0.74))
+                for x in (-0.9, 0.9) for y in (-0.45, 0.45)]
+        _mesh_object(scene, f"Table{t}", _merge(_box((-1.0, -0.5, 0.74), (1.0, 0.5, 0.78)),
+                                                *legs), green, location=(tx, 0.0, 0.0))
+        for ci, (dx, dy, rot) in enumerate(((-0.5, -0.85, 0.0), (0.5, -0.85, 0.0),
+                                            (-0.5, 0.85, 180.0), (0.5, 0.85, 180.0))):
+            chair = _merge(_box((-0.22, -0.22, 0.42), (0.22, 0.22, 0.46)),
+                           _box((-0.22, -0.26, 0.0), (0.22, -0.22, 0.9)))
+            _mesh_object(scene, f"Chair{t}{ci}", chair, wood, location=(tx + dx, dy, 0.0),
+                         rotation_z_deg=rot)
+    lamps = [_light(scene, f"Lamp{i}", "POINT", 250.0, (x, 0.0, 3.6))
+             for i, x in enumerate((-6.0, -2.0, 2.0, 6.0))]
+    _camera(scene, (-7.6, -1.2, 1.7), (0.0, 0.6, 1.1), lens_mm=20.0)
+    return _facts(scene, lamps)
+
+
 BUILDERS: dict[str, Callable[..., dict]] = {
     "cornell_box": cornell_box,
     "point_room": point_room,
     "sun_yard": sun_yard,
+    "city": city,
+    "sunlit_room": sunlit_room,
+    "library": library,
 }
 
 # Named scenes of the team (tools/make_references.py): name -> (builder, keyword arguments).
@@ -357,6 +553,9 @@ SCENES: dict[str, tuple[str, dict]] = {
     "cornell_area": ("cornell_box", {"light": "AREA"}),
     "point_room": ("point_room", {}),
     "sun_yard": ("sun_yard", {}),
+    "city": ("city", {}),
+    "sunlit_room": ("sunlit_room", {}),
+    "library": ("library", {}),
 }
 
 

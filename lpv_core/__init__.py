@@ -6,6 +6,7 @@ Illumination", I3D 2010 [KD10].
 """
 
 from . import (
+    areas,
     deferred,
     direct,
     engine,
@@ -21,5 +22,5 @@ from . import (
     sh,
 )
 
-__all__ = ["deferred", "direct", "engine", "exr", "grid", "injection", "lights", "lookup",
+__all__ = ["areas", "deferred", "direct", "engine", "exr", "grid", "injection", "lights", "lookup",
            "propagation", "raster", "rsm", "scene", "sh"]

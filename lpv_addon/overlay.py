@@ -1,0 +1,524 @@
+"""Viewport overlay: the LPV drawn with Blender's ``gpu`` module in a SpaceView3D handler.
+
+How it shades (our choice, per fragment rather than per vertex): each cascade's combined LPV
+is uploaded as three 3D textures (one per colour channel, RGBA = the 4 SH coefficients;
+RGBA16F, scaled by the grid's largest magnitude so half floats keep their relative precision)
+plus its propagation visibility (two RGB 3D textures: transmittance towards +x+y+z and -x-y-z),
+and a fragment shader repeats ``lpv_core.lookup.irradiance`` for every pixel of the extracted
+scene geometry: sample half a cell along the viewer-facing normal, trilinear over the 8 nearest
+cells (zero outside the grid) leaving out corners behind occluders and renormalising
+(``injection.visible_corners``), then the clamped-SH cosine convolution x 12/7 / s^2 or the
+"m1" closure read through a table, clamp at zero; cascades add up. Indirect radiance =
+irradiance / pi x albedo, 0 where ``gi_receiver`` is off. Per-vertex shading would blur the
+LPV over large polygons (a Cornell wall is one quad). Transition areas are multiplied into the
+uploaded grids per cell (exact inside a box and far from it; the falloff is resolved at cell
+size), clip areas act in propagation and in the visibility already.
+
+Modes (``Scene.lpv.overlay_mode``): ADD (indirect added on top of the viewport shading, for
+EEVEE material preview or solid mode), INDIRECT (indirect only), and debug views: CASCADES
+(grid bounds), VPLS (a VPL sample, coloured by flux), PROBES (each cell's SH as a glyph whose
+radius is the intensity towards that direction) and OCCLUSION (points on the cell faces where
+propagation is blocked: the geometry volume's occlusion times clip areas, white to red).
+The viewport's colours are linear; the view transform (AgX, Filmic) of the viewport shading is
+not applied to the overlay, so ADD is exact with the Standard transform.
+"""
+
+from __future__ import annotations
+
+import gpu
+import numpy as np
+from gpu_extras.batch import batch_for_shader
+from mathutils import Matrix
+
+from . import live
+
+_SHADERS: dict = {}
+_RESOURCES: dict = {}  # key -> GPU objects (textures, batches), freed with free_resources()
+_HANDLES: list = []  # draw handler of SpaceView3D (at most one)
+
+VERTEX_SOURCE = """
+void main() {
+    v_pos = pos;
+    v_nrm = nor;
+    v_col = col;
+    gl_Position = ModelViewProjectionMatrix * vec4(pos, 1.0);
+}
+"""
+
+FRAGMENT_SOURCE = """
+const float PI = 3.14159265358979;
+const float C0 = 0.886226925452758;       /* sqrt(pi)/2: clamped cosine, band 0 */
+const float C1 = 1.0233267079464885;      /* sqrt(pi/3): clamped cosine, band 1 */
+const float GAIN = 1.7142857142857142;    /* 12/7: undoes re-projection smoothing */
+const float SQRT_4PI = 3.5449077018110318;
+const float FLUX_B1 = 2.0466534158929770; /* Y1 4 pi / 3: net flux from band 1 */
+const float MAX_R = 0.995;
+
+float m1_irradiance(vec4 s, vec3 n) {
+    float held = max(s.x, 0.0) * SQRT_4PI;
+    vec3 v = vec3(-s.w, -s.y, s.z) * FLUX_B1;
+    float len_v = length(v);
+    float r = held > 0.0 ? clamp(len_v / held, 0.0, MAX_R) : 0.0;
+    vec3 d = len_v > 0.0 ? v / len_v : vec3(0.0);
+    float t = -dot(d, n);
+    vec2 size = vec2(textureSize(cos_table, 0));
+    vec2 uv = vec2((t + 1.0) * 0.5 * (size.x - 1.0) + 0.5, r / MAX_R * (size.y - 1.0) + 0.5);
+    return held * texture(cos_table, uv / size).r;
+}
+
+void main() {
+    int res = int(params.x);
+    vec3 n = normalize(v_nrm);
+    vec3 to_eye = eye.w > 0.5 ? -view_dir.xyz : eye.xyz - v_pos;
+    if (dot(n, to_eye) < 0.0) {
+        n = -n;
+    }
+    float cell = grid.w;
+    /* lookup.sample: continuous cell coordinates (integers on cell centres) */
+    vec3 c = (v_pos + n * (0.5 * cell) - grid.xyz) / cell - 0.5;
+    vec3 base = floor(c);
+    vec3 f = c - base;
+    ivec3 ib = ivec3(base);
+    /* injection.visible_corners: transmittance from the nearest cell to each corner */
+    ivec3 near = ivec3(greaterThanEqual(f, vec3(0.5)));
+    vec3 plus = vec3(1.0);
+    vec3 minus = vec3(1.0);
+    if (params.w > 0.5) {
+        ivec3 nc = clamp(ib + near, ivec3(0), ivec3(res - 1));
+        plus = texelFetch(vis_plus, nc, 0).xyz;
+        minus = texelFetch(vis_minus, nc, 0).xyz;
+    }
+    vec4 sr = vec4(0.0);
+    vec4 sg = vec4(0.0);
+    vec4 sb = vec4(0.0);
+    float w_all = 0.0;
+    float w_seen = 0.0;
+    for (int k = 0; k < 8; k++) {
+        ivec3 d = ivec3(k >> 2, (k >> 1) & 1, k & 1);
+        ivec3 i = ib + d;
+        if (any(lessThan(i, ivec3(0))) || any(greaterThanEqual(i, ivec3(res)))) {
+            continue;
+        }
+        vec3 wv = mix(1.0 - f, f, vec3(d));
+        float w = wv.x * wv.y * wv.z;
+        w_all += w;
+        ivec3 st = d - near;
+        for (int a = 0; a < 3; a++) {
+            w *= st[a] > 0 ? plus[a] : (st[a] < 0 ? minus[a] : 1.0);
+        }
+        w_seen += w;
+        sr += w * texelFetch(lpv_r, i, 0);
+        sg += w * texelFetch(lpv_g, i, 0);
+        sb += w * texelFetch(lpv_b, i, 0);
+    }
+    float renorm = w_seen > 0.0 ? params.z * w_all / w_seen : 0.0;
+    sr *= renorm;
+    sg *= renorm;
+    sb *= renorm;
+    vec3 e;
+    if (view_dir.w > 0.5) {
+        e = vec3(m1_irradiance(sr, n), m1_irradiance(sg, n), m1_irradiance(sb, n));
+    }
+    else {
+        vec4 lobe = vec4(C0, C1 * n.y, -C1 * n.z, C1 * n.x); /* cosine lobe around -n */
+        e = vec3(dot(sr, lobe), dot(sg, lobe), dot(sb, lobe)) * GAIN;
+    }
+    e = max(e, vec3(0.0)) / (cell * cell);
+    vec3 radiance = e / PI * v_col.rgb * v_col.a;
+    FragColor = vec4(radiance * params.y, 1.0);
+}
+"""
+
+
+def _lpv_shader():
+    shader = _SHADERS.get("lpv")
+    if shader is None:
+        iface = gpu.types.GPUStageInterfaceInfo("lpv_gi_iface")
+        iface.smooth("VEC3", "v_pos")
+        iface.smooth("VEC3", "v_nrm")
+        iface.smooth("VEC4", "v_col")
+        info = gpu.types.GPUShaderCreateInfo()
+        info.vertex_in(0, "VEC3", "pos")
+        info.vertex_in(1, "VEC3", "nor")
+        info.vertex_in(2, "VEC4", "col")
+        info.vertex_out(iface)
+        info.push_constant("MAT4", "ModelViewProjectionMatrix")
+        info.push_constant("VEC4", "grid")  # origin xyz, cell size
+        info.push_constant("VEC4", "params")  # resolution, weight, value scale, use visibility
+        info.push_constant("VEC4", "eye")  # eye position, 1 if orthographic
+        info.push_constant("VEC4", "view_dir")  # view direction, 1 if "m1" lookup
+        info.sampler(0, "FLOAT_3D", "lpv_r")
+        info.sampler(1, "FLOAT_3D", "lpv_g")
+        info.sampler(2, "FLOAT_3D", "lpv_b")
+        info.sampler(3, "FLOAT_3D", "vis_plus")
+        info.sampler(4, "FLOAT_3D", "vis_minus")
+        info.sampler(5, "FLOAT_2D", "cos_table")
+        info.fragment_out(0, "VEC4", "FragColor")
+        info.vertex_source(VERTEX_SOURCE)
+        info.fragment_source(FRAGMENT_SOURCE)
+        shader = _SHADERS["lpv"] = gpu.shader.create_from_info(info)
+    return shader
+
+
+def _texture(shape, fmt: str, data: np.ndarray):
+    data = np.ascontiguousarray(data, np.float32)
+    buf = gpu.types.Buffer("FLOAT", data.size, data.ravel())
+    return gpu.types.GPUTexture(shape, format=fmt, data=buf)
+
+
+def lpv_textures(grid, values: np.ndarray):
+    """Three RGBA16F 3D textures (R, G, B channel; RGBA = SH coefficients) and the scale the
+    values were divided by. Texture data is C-order (z, y, x, c); our grid is [x, y, z]."""
+    r = grid.resolution
+    scale = float(np.abs(values).max()) if values.size else 0.0
+    scale = scale if scale > 0 and np.isfinite(scale) else 1.0
+    texs = []
+    for ch in range(3):
+        arr = values[:, :, :, ch, :].transpose(2, 1, 0, 3) / scale
+        texs.append(_texture((r, r, r), "RGBA16F", arr))
+    return texs, scale
+
+
+def visibility_textures(grid, visibility):
+    """(+x, +y, +z) and (-x, -y, -z) transmittances of each cell as two RGBA16F 3D textures
+    (propagation.AXES order: +x, -x, +y, -y, +z, -z); None when nothing blocks."""
+    if visibility is None:
+        return None
+    vis = np.asarray(visibility, np.float32)
+    r = grid.resolution
+    out = []
+    for sign in (0, 1):
+        arr = np.ones((r, r, r, 4), np.float32)
+        for axis in range(3):
+            arr[..., axis] = vis[2 * axis + sign]
+        out.append(_texture((r, r, r), "RGBA16F", arr.transpose(2, 1, 0, 3)))
+    return out
+
+
+def _c(array, n: int) -> np.ndarray:
+    """(M, n) C-contiguous float32: vertex buffers read the raw memory (a transposed view
+    would be read in the wrong order)."""
+    return np.ascontiguousarray(np.asarray(array, np.float32).reshape(-1, n))
+
+
+def _resource(key, make):
+    res = _RESOURCES.get(key)
+    if res is None:
+        res = _RESOURCES[key] = make()
+    return res
+
+
+def _geometry_batch(result):
+    geo = result.geometry
+    t = geo["positions"].shape[0]
+    pos = geo["positions"].reshape(-1, 3)
+    nrm = geo["normals"].reshape(-1, 3)
+    col = np.empty((t, 3, 4), np.float32)
+    col[..., :3] = geo["albedo"][:, None, :]
+    col[..., 3] = np.asarray(geo["receiver"], np.float32)[:, None]
+    return batch_for_shader(_lpv_shader(), "TRIS", {"pos": _c(pos, 3), "nor": _c(nrm, 3),
+                                                    "col": _c(col, 4)})
+
+
+def levels(result) -> list:
+    """(grid, values, visibility) of every cascade of a result, coarsest first."""
+    if result is None or result.grid is None or result.values is None:
+        return []
+    return [(result.grid, result.values, result.visibility)] + list(result.fine or [])
+
+
+def _result_resources(result):
+    def make():
+        out = []
+        for grid, values, visibility in levels(result):
+            values = live.core.areas.apply_transition_to_grid(grid, values, result.areas)
+            texs, scale = lpv_textures(grid, values)
+            out.append({"grid": grid, "textures": texs, "scale": scale,
+                        "visibility": visibility_textures(grid, visibility)})
+        table = result.cosine_table
+        if table is None:
+            table = np.zeros((2, 2), np.float32)
+        ones = _texture((1, 1, 1), "RGBA16F", np.ones(4, np.float32))
+        return {"levels": out, "ones": ones, "batch": _geometry_batch(result),
+                "cos_table": _texture((table.shape[1], table.shape[0]), "R32F", table)}
+
+    return _resource(("result", result.serial), make)
+
+
+def _prune(keep: set) -> None:
+    for key in list(_RESOURCES):
+        if key[1] not in keep:
+            del _RESOURCES[key]
+
+
+def free_resources() -> None:
+    """Drop every GPU object we made (textures, batches, shaders)."""
+    _RESOURCES.clear()
+    _SHADERS.clear()
+
+
+def resource_count() -> int:
+    return len(_RESOURCES) + len(_SHADERS)
+
+
+# -------------------------------------------------------------------------------- drawing
+
+
+def _matrix(m) -> Matrix:
+    return m if isinstance(m, Matrix) else Matrix(np.asarray(m, np.float64).tolist())
+
+
+def _draw_indirect(result, mvp: Matrix, eye4, view_dir4, weight: float,
+                   first_blend: str) -> None:
+    """Every cascade of ``result`` (the first pass with ``first_blend``, the rest added)."""
+    if not levels(result) or weight <= 0:
+        return
+    res = _result_resources(result)
+    shader = _lpv_shader()
+    angular = 1.0 if getattr(result.settings, "angular", "sh") == "m1" else 0.0
+    for i, level in enumerate(res["levels"]):
+        gpu.state.blend_set(first_blend if i == 0 else "ADDITIVE")
+        shader.bind()
+        shader.uniform_float("ModelViewProjectionMatrix", mvp)
+        g = level["grid"]
+        vis = level["visibility"]
+        shader.uniform_float("grid", (*g.origin, g.cell_size))
+        shader.uniform_float("params", (float(g.resolution), float(weight), level["scale"],
+                                        0.0 if vis is None else 1.0))
+        shader.uniform_float("eye", eye4)
+        shader.uniform_float("view_dir", (*view_dir4[:3], angular))
+        for name, tex in zip(("lpv_r", "lpv_g", "lpv_b"), level["textures"]):
+            shader.uniform_sampler(name, tex)
+        plus, minus = vis if vis is not None else (res["ones"], res["ones"])
+        shader.uniform_sampler("vis_plus", plus)
+        shader.uniform_sampler("vis_minus", minus)
+        shader.uniform_sampler("cos_table", res["cos_table"])
+        res["batch"].draw(shader)
+
+
+def _depth_prepass(result, mvp: Matrix) -> None:
+    if result is None or result.geometry["positions"].shape[0] == 0:
+        return
+    shader = gpu.shader.from_builtin("UNIFORM_COLOR")
+    batch = _resource(("depth", result.serial), lambda: batch_for_shader(
+        shader, "TRIS", {"pos": _c(result.geometry["positions"], 3)}))
+    gpu.state.color_mask_set(False, False, False, False)
+    gpu.state.depth_mask_set(True)
+    gpu.state.depth_test_set("LESS_EQUAL")
+    with gpu.matrix.push_pop(), gpu.matrix.push_pop_projection():
+        gpu.matrix.load_identity()
+        gpu.matrix.load_projection_matrix(mvp)
+        shader.uniform_float("color", (0.0, 0.0, 0.0, 1.0))
+        batch.draw(shader)
+    gpu.state.color_mask_set(True, True, True, True)
+    gpu.state.depth_mask_set(False)
+
+
+def _lines(mvp: Matrix, segments: np.ndarray, color) -> None:
+    if segments.size == 0:
+        return
+    shader = gpu.shader.from_builtin("UNIFORM_COLOR")
+    batch = batch_for_shader(shader, "LINES", {"pos": _c(segments, 3)})
+    with gpu.matrix.push_pop(), gpu.matrix.push_pop_projection():
+        gpu.matrix.load_identity()
+        gpu.matrix.load_projection_matrix(mvp)
+        shader.uniform_float("color", color)
+        batch.draw(shader)
+
+
+def _colored(mvp: Matrix, kind: str, builtin: str, pos: np.ndarray, col: np.ndarray) -> None:
+    if pos.size == 0:
+        return
+    shader = gpu.shader.from_builtin(builtin)
+    batch = batch_for_shader(shader, kind, {"pos": _c(pos, 3), "color": _c(col, 4)})
+    with gpu.matrix.push_pop(), gpu.matrix.push_pop_projection():
+        gpu.matrix.load_identity()
+        gpu.matrix.load_projection_matrix(mvp)
+        batch.draw(shader)
+
+
+def box_segments(lo, hi) -> np.ndarray:
+    """(12, 2, 3) edges of the box [lo, hi]."""
+    lo, hi = np.asarray(lo, np.float32), np.asarray(hi, np.float32)
+    c = np.array([[(hi if (i >> k) & 1 else lo)[k] for k in range(3)] for i in range(8)])
+    edges = [(a, a | (1 << k)) for a in range(8) for k in range(3) if not (a >> k) & 1]
+    return np.array([[c[a], c[b]] for a, b in edges], np.float32)
+
+
+def _sphere(subdivisions: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """Unit directions and triangles of a subdivided octahedron."""
+    verts = [np.array(v, float) for v in
+             [(1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1)]]
+    faces = [(0, 2, 4), (2, 1, 4), (1, 3, 4), (3, 0, 4), (2, 0, 5), (1, 2, 5), (3, 1, 5),
+             (0, 3, 5)]
+    def mid(a, b, cache):
+        key = (min(a, b), max(a, b))
+        if key not in cache:
+            m = verts[a] + verts[b]
+            verts.append(m / np.linalg.norm(m))
+            cache[key] = len(verts) - 1
+        return cache[key]
+
+    for _ in range(subdivisions):
+        cache: dict = {}
+        new = []
+        for a, b, c in faces:
+            ab, bc, ca = mid(a, b, cache), mid(b, c, cache), mid(c, a, cache)
+            new += [(a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca)]
+        faces = new
+    return np.array(verts), np.array(faces)
+
+
+def probe_glyphs(grid, values: np.ndarray, max_probes: int = 1500):
+    """Triangles (N, 3) and colours (N, 4) of SH glyphs on an even lattice of cells: the
+    radius towards w is the intensity max(0, <I, Y(w)>) (its shape per probe), the glyph size
+    grows with the cube root of the probe's flux, coloured by the intensity's colour."""
+    dirs, faces = _sphere(2)
+    basis = live.core.sh.evaluate_basis(dirs)  # (D, 4)
+    r = grid.resolution
+    flat = values.reshape(-1, 3, 4)
+    energy = np.maximum(flat[:, :, 0].mean(axis=1), 0.0)
+    peak_energy = float(energy.max(initial=0.0))
+    if peak_energy <= 0:
+        return np.zeros((0, 3), np.float32), np.zeros((0, 4), np.float32)
+    stride = max(1, int(np.ceil(r / round(max_probes ** (1.0 / 3.0)))))
+    lattice = np.zeros((r, r, r), bool)
+    lattice[stride // 2::stride, stride // 2::stride, stride // 2::stride] = True
+    idx = np.flatnonzero(lattice.ravel() & (energy > 1e-3 * peak_energy))
+    ijk = np.stack(np.unravel_index(idx, (r, r, r)), axis=1)
+    centres = grid.origin_array + (ijk + 0.5) * grid.cell_size
+    rgb = np.maximum(np.einsum("pcs,ds->pdc", flat[idx], basis), 0.0)  # (P, D, 3)
+    radius = rgb.mean(axis=2)
+    shape = radius / np.maximum(radius.max(axis=1, keepdims=True), 1e-30)
+    size = 0.45 * stride * grid.cell_size * np.cbrt(energy[idx] / peak_energy)
+    pos = centres[:, None, :] + dirs[None] * (shape * size[:, None])[..., None]
+    col = np.ones(rgb.shape[:2] + (4,))
+    col[..., :3] = rgb / np.maximum(rgb.max(axis=(1, 2), keepdims=True), 1e-30)
+    return (pos[:, faces].reshape(-1, 3).astype(np.float32),
+            col[:, faces].reshape(-1, 4).astype(np.float32))
+
+
+def _draw_debug(result, mode: str, mvp: Matrix) -> None:
+    if result is None or result.grid is None:
+        return
+    if mode == "CASCADES":
+        grids = [result.grid] + [level[0] for level in result.fine or []]
+        for i, grid in enumerate(grids):
+            lo, hi = grid.bounds()
+            _lines(mvp, box_segments(lo, hi), (1.0, 0.8 - 0.25 * i, 0.1 + 0.3 * i, 1.0))
+    elif mode == "VPLS" and result.vpl_position is not None:
+        flux = result.vpl_flux
+        col = np.ones((flux.shape[0], 4), np.float32)
+        col[:, :3] = flux / max(float(flux.max()), 1e-30)
+        col[:, :3] = np.sqrt(np.clip(col[:, :3], 0, 1))
+        gpu.state.point_size_set(4.0)
+        _colored(mvp, "POINTS", "POINT_FLAT_COLOR", result.vpl_position, col)
+        gpu.state.point_size_set(1.0)
+    elif mode == "PROBES" and result.values is not None:
+        pos, col = _resource(("probes", result.serial),
+                             lambda: probe_glyphs(result.grid, result.values))
+        _colored(mvp, "TRIS", "SMOOTH_COLOR", pos, col)
+    elif mode == "OCCLUSION" and result.visibility is not None:
+        pos, col = _resource(("occlusion", result.serial),
+                             lambda: blocked_faces(result.grid, result.visibility))
+        gpu.state.point_size_set(3.0)
+        _colored(mvp, "POINTS", "POINT_FLAT_COLOR", pos, col)
+        gpu.state.point_size_set(1.0)
+
+
+def blocked_faces(grid, visibility: np.ndarray, threshold: float = 0.02):
+    """Points at the cell faces where propagation is blocked (occlusion, clip areas), white
+    to red with the blocked fraction 1 - V: (N, 3) positions, (N, 4) colours."""
+    vis = np.asarray(visibility, np.float32)
+    blocked = 1.0 - vis
+    pos, col = [], []
+    for i, d in enumerate(live.core.propagation.AXES):
+        idx = np.argwhere(blocked[i] > threshold)
+        if idx.size == 0:
+            continue
+        b = blocked[i][tuple(idx.T)]
+        pos.append(grid.origin_array + (idx + 0.5 + 0.5 * d) * grid.cell_size)
+        c = np.ones((b.size, 4), np.float32)
+        c[:, 1] = c[:, 2] = 1.0 - b
+        col.append(c)
+    if not pos:
+        return np.zeros((0, 3), np.float32), np.zeros((0, 4), np.float32)
+    return np.concatenate(pos).astype(np.float32), np.concatenate(col)
+
+
+def draw(view, projection, mode: str = "ADD", fade: float = 1.0, exposure: float = 0.0,
+         depth_prepass: bool = False, current=None, previous=None) -> None:
+    """Draw the overlay with the given world-to-view and projection matrices into the bound
+    framebuffer. ``fade`` blends ``previous`` (1 - fade) into ``current`` (fade).
+    ``depth_prepass`` writes the extracted geometry's depth first (offscreen pictures; the
+    viewport already holds the scene's depth)."""
+    current = live.STATE.current if current is None else current
+    previous = live.STATE.previous if previous is None else previous
+    view, projection = _matrix(view), _matrix(projection)
+    mvp = projection @ view
+    inv = view.inverted_safe()
+    ortho = abs(projection[3][3] - 1.0) < 1e-6
+    eye4 = (*inv.translation, 1.0 if ortho else 0.0)
+    view_dir = -inv.col[2].xyz
+    view_dir4 = (*view_dir.normalized(), 0.0)
+    _prune({r.serial for r in (current, previous) if r is not None})
+    try:
+        gpu.state.depth_test_set("LESS_EQUAL")
+        gpu.state.depth_mask_set(False)
+        if mode in ("ADD", "INDIRECT"):
+            if depth_prepass:
+                _depth_prepass(current, mvp)
+            gain = 2.0 ** float(exposure)
+            f = fade if previous is not None and previous.values is not None else 1.0
+            _draw_indirect(current, mvp, eye4, view_dir4, gain * f,
+                           "ADDITIVE" if mode == "ADD" else "NONE")
+            if f < 1.0:
+                _draw_indirect(previous, mvp, eye4, view_dir4, gain * (1.0 - f), "ADDITIVE")
+        else:
+            gpu.state.blend_set("ALPHA")
+            _draw_debug(current, mode, mvp)
+    finally:
+        gpu.state.blend_set("NONE")
+        gpu.state.depth_mask_set(False)
+        gpu.state.depth_test_set("NONE")
+        gpu.state.color_mask_set(True, True, True, True)
+
+
+def _draw_callback() -> None:
+    """SpaceView3D POST_VIEW handler."""
+    import bpy
+
+    context = bpy.context
+    scene = getattr(context, "scene", None)
+    props = getattr(scene, "lpv", None) if scene is not None else None
+    rv3d = getattr(context, "region_data", None)
+    if props is None or rv3d is None or not props.enabled or not props.show_overlay:
+        return
+    if live.STATE.current is None:
+        return
+    try:
+        draw(rv3d.view_matrix, rv3d.window_matrix, props.overlay_mode, live.fade(props),
+             props.overlay_exposure)
+    except Exception as exc:  # noqa: BLE001 - never break the viewport; say why once
+        if live.STATE.error != f"overlay: {exc}":
+            live.STATE.error = f"overlay: {exc}"
+            print(f"LPV GI overlay: {exc}")
+
+
+def add_handler() -> None:
+    import bpy
+
+    if not _HANDLES:
+        _HANDLES.append(bpy.types.SpaceView3D.draw_handler_add(
+            _draw_callback, (), "WINDOW", "POST_VIEW"))
+
+
+def remove_handler() -> None:
+    import bpy
+
+    while _HANDLES:
+        bpy.types.SpaceView3D.draw_handler_remove(_HANDLES.pop(), "WINDOW")
+
+
+def handler_count() -> int:
+    return len(_HANDLES)

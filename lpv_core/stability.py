@@ -1,0 +1,619 @@
+"""Stability suite: stiff and extreme scenes through the real engine, measured, not just passed.
+
+Each ``case_*`` function runs the core engine (``Engine.update`` + ``deferred.render``, numpy
+backend) on numpy-built scenes and returns a *figure*: a dict with a title, what the invariant
+answer is, and one row per variant with
+
+- ``nonfinite``: NaN/Inf values in the LPV grid and the rendered passes (before the renderer's
+  own clean-up, which counts them in ``stats.dropped``);
+- ``energy_growth``: the largest flux(after) / flux(before) over every propagation step the
+  engine ran (recorded by wrapping ``propagation.step``; must never exceed 1);
+- ``deviation``: the relative L1 deviation, sum |a - b| / sum |b|, of the Diffuse Indirect pass
+  from the case's invariant answer (``deviation_direct`` the same for Diffuse Direct);
+- ``time_s``: wall time of the update and render.
+
+``run_suite(profile)`` runs them all ("test": tiny sizes for the unit tests; "report": the
+sizes of the report). The report (lpv_addon/report.py) plots the figures; the tests
+(tests/test_stability.py) assert the invariants. Nothing here imports bpy or matplotlib.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import inspect
+import itertools
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import deferred, demo, engine, propagation
+from .scene import Camera, GISettings, Light, Material, Scene, make_scene
+
+# Tolerances the tests assert (and the report draws). In exact arithmetic the engine is
+# covariant under scaling (with power x scale^2) and translation, and linear in light power and
+# (one bounce) in albedo: the grid is fitted to the scene's bounds, the rasteriser works
+# relative to the scene centre, and every threshold (early stop, clamps) is relative or at 0.
+# What remains is float32 rounding, ~6e-8 relative per operation through ~1e2 operations per
+# value: 1e-5 with margin for the linear cases; 1e-4 for the geometric ones, whose positions
+# also pass through float32 rasterisation. Diffuse Direct may additionally flip a shadow-map
+# depth test at a shadow edge: 2e-3 is about two pixels of a 32x32 image. Energy growth per
+# step: <= 1 + 1e-5 (float32 sums of up to ~1e4 terms).
+TOLERANCES = {"scale": 1e-4, "translation": 1e-4, "power": 1e-5, "albedo": 1e-5,
+              "direct": 2e-3, "energy": 1e-5}
+
+PROFILES = {
+    "test": {
+        "resolution": (32, 32), "grid": 8, "rsm": 32, "shadow": 128,
+        # Caps that keep the engine's defaults affordable here (unknown keys are ignored).
+        "overrides": {"iterations": 4, "direction_groups": 1},
+        "grid_iterations": 2,
+        "scales": (1e-3, 1e-1, 1.0, 1e2, 1e4),
+        "offsets": (0.0, 1e3, 1e5, 1e6),
+        "powers": (1e-6, 1e-2, 300.0, 1e5, 1e9),
+        "wall_cells": (0.05, 0.5, 1.0, 2.0),
+        "crate_cells": (0.5, 1.0, 2.0),
+        "albedos": (0.0, 0.5, 1.0),
+        "grids": (4, 8, 16, 32),
+        "iterations": (1, 4, 64, 1000),
+        "trace_grid": 4, "trace_steps": 1000,
+        "f16_powers": (1e-6, 1.0, 300.0, 1e9),
+    },
+    "report": {
+        "resolution": (64, 64), "grid": 16, "rsm": 64, "shadow": 256,
+        "overrides": {"iterations": 8, "direction_groups": 1},
+        "grid_iterations": 2,
+        "scales": (1e-3, 1e-2, 1e-1, 1.0, 10.0, 1e2, 1e3, 1e4),
+        "offsets": (0.0, 1e2, 1e3, 1e4, 1e5, 1e6),
+        "powers": (1e-6, 1e-3, 1.0, 300.0, 1e3, 1e6, 1e9),
+        "wall_cells": (0.05, 0.25, 0.5, 1.0, 2.0, 4.0),
+        "crate_cells": (0.5, 1.0, 2.0, 4.0),
+        "albedos": (0.0, 0.25, 0.5, 0.8, 1.0),
+        "grids": (4, 8, 16, 32, 64, 128),
+        "iterations": (1, 2, 4, 8, 16, 64, 256, 1000),
+        "trace_grid": 16, "trace_steps": 1000,
+        "f16_powers": (1e-6, 1e-3, 1.0, 300.0, 1e3, 1e6, 1e9),
+    },
+}
+
+
+# ---------------------------------------------------------------------------------------------
+# Running the engine with measurements
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Run:
+    """One engine update + render, with what the stability figures need."""
+
+    passes: dict
+    others: list  # passes rendered from the extra cameras
+    result: engine.LPVResult
+    seconds: float
+    nonfinite: int
+    steps: list = field(default_factory=list)  # (flux in, flux out) per propagation step
+    injected: np.ndarray | None = None  # the input of the first propagation chain
+
+    @property
+    def energy_growth(self) -> float:
+        """max flux(out) / flux(in) over the steps (0.0 when no step ran)."""
+        return growth(self.steps)
+
+    def indirect(self, which: int = -1) -> np.ndarray:
+        p = self.passes if which < 0 else self.others[which]
+        return p["Diffuse Indirect"][..., :3].astype(np.float64)
+
+    def direct(self, which: int = -1) -> np.ndarray:
+        p = self.passes if which < 0 else self.others[which]
+        return p["Diffuse Direct"][..., :3].astype(np.float64)
+
+
+# Fluxes below this (W) are left out of growth ratios: there the grid's float32 values are
+# subnormal (< 1.2e-38), rounding is absolute, and a ratio of two such sums means nothing.
+FLUX_FLOOR = 1e-30
+
+
+def growth(steps) -> float:
+    """max flux(out) / flux(in) over (flux in, flux out) pairs above FLUX_FLOOR (0.0 if none)."""
+    ratios = [b / a for a, b in steps if a > FLUX_FLOOR]
+    return float(max(ratios)) if ratios else 0.0
+
+
+@contextlib.contextmanager
+def record_steps():
+    """Wrap ``propagation.step`` to log (flux in, flux out) of every step and keep the first
+    chain's input (the injected grid). Yields the log dict {"steps": [...], "injected": ...}."""
+    log: dict = {"steps": [], "injected": None, "_last": None}
+    original = propagation.step
+
+    def wrapped(values, *args, **kwargs):
+        out = original(values, *args, **kwargs)
+        if log["injected"] is None and values is not log["_last"]:
+            log["injected"] = np.array(values, copy=True)
+        log["_last"] = out
+        log["steps"].append((float(propagation.flux(values).sum()),
+                             float(propagation.flux(out).sum())))
+        return out
+
+    propagation.step = wrapped
+    try:
+        yield log
+    finally:
+        propagation.step = original
+
+
+def _nonfinite(*arrays) -> int:
+    return int(sum(int((~np.isfinite(a)).sum()) for a in arrays if a is not None))
+
+
+class Runner:
+    """Shares one rasteriser (GL context) across runs; a fresh Engine per run (no caching)."""
+
+    def __init__(self, profile: str = "test", raster=None):
+        if profile not in PROFILES:
+            raise ValueError(f"profile must be one of {sorted(PROFILES)}, not {profile!r}")
+        self.name = profile
+        self.p = PROFILES[profile]
+        self._raster = raster
+
+    @property
+    def raster(self):
+        if self._raster is None:
+            from .raster import Rasterizer
+
+            self._raster = Rasterizer()
+        return self._raster
+
+    def settings(self, **kw) -> GISettings:
+        known = {f.name for f in dataclasses.fields(GISettings)}
+        # The numpy backend: its propagation steps are the ones record_steps() can see.
+        kw = {"grid_resolution": self.p["grid"], "rsm_resolution": self.p["rsm"],
+              "shadow_resolution": self.p["shadow"], "backend": "numpy",
+              **self.p["overrides"], **kw}
+        return GISettings().updated(**{k: v for k, v in kw.items() if k in known})
+
+    def run(self, scene: Scene, cameras: list[Camera] | None = None) -> Run:
+        """Update + render from ``scene.camera`` (and each of ``cameras``)."""
+        eng = engine.Engine(raster=self.raster)
+        stats = engine.Stats()
+        with record_steps() as log:
+            t0 = time.perf_counter()
+            result = eng.update(scene, stats)
+            passes = deferred.render(eng, scene, result, stats)
+            seconds = time.perf_counter() - t0
+        others = []
+        for cam in cameras or []:
+            view = dataclasses.replace(scene, camera=cam)
+            others.append(deferred.render(eng, view, result, engine.Stats()))
+        bad = sum(v for k, v in stats.dropped.items() if k.startswith("nonfinite_pixels"))
+        bad += _nonfinite(result.values)
+        return Run(passes, others, result, seconds, bad, log["steps"], log["injected"])
+
+
+def rel_dev(a: np.ndarray, b: np.ndarray) -> float:
+    """sum |a - b| / sum |b|; 0 when both are zero, inf when only ``b`` is."""
+    a = np.nan_to_num(np.asarray(a, np.float64), nan=0.0, posinf=0.0, neginf=0.0)
+    b = np.asarray(b, np.float64)
+    num = float(np.abs(a - b).sum())
+    den = float(np.abs(b).sum())
+    if den == 0:
+        return 0.0 if num == 0 else math.inf
+    return num / den
+
+
+def _row(label, x, run: Run, deviation: float, deviation_direct: float | None = None,
+         **extra) -> dict:
+    return {"label": str(label), "x": x, "nonfinite": run.nonfinite,
+            "energy_growth": run.energy_growth, "deviation": float(deviation),
+            "deviation_direct": None if deviation_direct is None else float(deviation_direct),
+            "time_s": run.seconds, "steps": len(run.steps), **extra}
+
+
+def _figure(name, title, x_label, invariant, rows, x_log=True, **extra) -> dict:
+    return {"name": name, "title": title, "x_label": x_label, "x_log": x_log,
+            "invariant": invariant, "rows": rows, **extra}
+
+
+# ---------------------------------------------------------------------------------------------
+# Scenes
+# ---------------------------------------------------------------------------------------------
+
+
+def _cornell(r: Runner, **kw) -> Scene:
+    settings = kw.pop("settings", None) or r.settings()
+    return demo.cornell_box("SPOT", r.p["resolution"], settings, **kw)
+
+
+def two_rooms(r: Runner, thickness: float, centre: float = 0.0, power: float = 100.0,
+              settings: GISettings | None = None) -> tuple[Scene, Camera]:
+    """Two 2 m rooms side by side (x in [-2, 2]) split by a wall ``thickness`` m thick at
+    x = ``centre``; a point light in the left room. Returns the scene (its camera, at the left
+    room's far end, looks at the wall) and a camera looking at the wall from the right room
+    (which only leaked light reaches).
+    """
+    lo, hi = (-2.0, -1.0, 0.0), (2.0, 1.0, 2.0)
+    tris = [demo.box_triangles(lo, hi, inward=True)]
+    a, b = centre - thickness / 2, centre + thickness / 2
+    tris.append(demo.quad((a, -1, 0), (a, -1, 2), (a, 1, 2), (a, 1, 0)))  # faces -x
+    tris.append(demo.quad((b, -1, 0), (b, 1, 0), (b, 1, 2), (b, -1, 2)))  # faces +x
+    light = Light("Point", "POINT", demo.light_matrix((-1.3 + centre / 2, 0.0, 1.5), (0, 0, -1)),
+                  power=power)
+    res = r.p["resolution"]
+    fov = np.radians(90.0)
+    left = Camera.look_at((-1.95, 0.0, 1.0), (centre, 0.0, 0.8), fov_y=fov, resolution=res,
+                          near=0.01, far=20.0)
+    right = Camera.look_at((1.95, 0.0, 1.0), (centre, 0.0, 0.8), fov_y=fov, resolution=res,
+                           near=0.01, far=20.0)
+    scene = make_scene(np.concatenate(tris), materials=[Material("white")], lights=[light],
+                       camera=left, settings=settings or r.settings())
+    return scene, right
+
+
+def crate_room(r: Runner, crate: float | None, settings: GISettings | None = None) -> Scene:
+    """A closed 6 x 6 x 3 m room with a point light at (0, 0, h); with ``crate`` (m) the light
+    sits at the centre of a closed crate of that size on the floor. Camera outside the crate."""
+    h = 0.5 * crate if crate else 0.5
+    tris = [demo.box_triangles((-3.0, -3.0, 0.0), (3.0, 3.0, 3.0), inward=True)]
+    if crate:
+        c = crate / 2
+        tris.append(demo.box_triangles((-c, -c, 0.0), (c, c, crate)))
+    light = Light("Point", "POINT", demo.light_matrix((0.0, 0.0, h), (0, 0, -1)), power=200.0)
+    cam = Camera.look_at((2.6, -2.6, 2.2), (0.0, 0.0, 0.3), fov_y=np.radians(70.0),
+                         resolution=r.p["resolution"], near=0.01, far=30.0)
+    return make_scene(np.concatenate(tris), materials=[Material("white")], lights=[light],
+                      camera=cam, settings=settings or r.settings())
+
+
+def _with_extra_triangles(scene: Scene, extra: np.ndarray, material: int = 0) -> Scene:
+    pos = np.concatenate([scene.positions, extra])
+    mat = np.concatenate([scene.material_index, np.full(len(extra), material, np.int32)])
+    return make_scene(pos, material_index=mat, materials=list(scene.materials),
+                      lights=scene.lights, camera=scene.camera, settings=scene.settings)
+
+
+def _cell_size(r: Runner, lo, hi, resolution: int | None = None) -> float:
+    from .grid import fit_grid
+
+    return fit_grid(np.asarray(lo, float), np.asarray(hi, float),
+                    resolution or r.p["grid"]).cell_size
+
+
+# ---------------------------------------------------------------------------------------------
+# Cases
+# ---------------------------------------------------------------------------------------------
+
+
+def case_scale(r: Runner) -> dict:
+    """Scene scale 1e-3 .. 1e4 m with power x scale^2: irradiance is scale-invariant."""
+    base = r.run(_cornell(r))
+    rows = []
+    for s in r.p["scales"]:
+        run = base if s == 1.0 else r.run(_cornell(r, scale=s))
+        rows.append(_row(f"x{s:g}", s, run, rel_dev(run.indirect(), base.indirect()),
+                         rel_dev(run.direct(), base.direct())))
+    return _figure("scale", "Scene scale (power x scale^2)", "scale factor",
+                   "the passes at scale 1 (irradiance does not change)", rows)
+
+
+def case_translation(r: Runner) -> dict:
+    """Translation up to 1e6 m: the grid and the G-buffer keep positions relative to the scene."""
+    base = r.run(_cornell(r))
+    rows = []
+    for t in r.p["offsets"]:
+        run = base if t == 0 else r.run(_cornell(r, offset=(t, -0.7 * t, 0.3 * t)))
+        rows.append(_row(f"{t:g} m", max(t, 1.0), run, rel_dev(run.indirect(), base.indirect()),
+                         rel_dev(run.direct(), base.direct())))
+    return _figure("translation", "Translation far from the origin", "offset (m; 0 drawn at 1)",
+                   "the passes at the origin", rows)
+
+
+def case_power(r: Runner) -> dict:
+    """Light power 1e-6 .. 1e9 W: every pass is linear in the power."""
+    p0 = 300.0
+    base = r.run(_cornell(r, power=p0))
+    rows = []
+    for p in r.p["powers"]:
+        run = base if p == p0 else r.run(_cornell(r, power=p))
+        rows.append(_row(f"{p:g} W", p, run, rel_dev(run.indirect() * (p0 / p), base.indirect()),
+                         rel_dev(run.direct() * (p0 / p), base.direct())))
+    return _figure("power", "Light power", "spot power (W)",
+                   "the 300 W passes x power / 300 W (linearity)", rows)
+
+
+def _occlusion_modes() -> list[dict]:
+    """Leak cases run without and (when the engine has it) with occlusion."""
+    names = {f.name for f in dataclasses.fields(GISettings)}
+    return [{"occlusion": False}, {"occlusion": True}] if "occlusion" in names else [{}]
+
+
+def _occl_tag(occl: dict) -> str:
+    return ", occlusion" if occl.get("occlusion") else ""
+
+
+def case_thin_wall(r: Runner) -> dict:
+    """A wall between two rooms, 0.05 to 4 cells thick: light leaking into the dark room."""
+    cell = _cell_size(r, (-2, -1, 0), (2, 1, 2))
+    rows = []
+    for occl in _occlusion_modes():
+        for k in r.p["wall_cells"]:
+            scene, right = two_rooms(r, k * cell, settings=r.settings(**occl))
+            run = r.run(scene, [right])
+            lit = run.indirect().mean()
+            leak = run.indirect(0).mean() / lit if lit > 0 else math.inf
+            dleak = run.direct(0).mean() / max(run.direct().mean(), 1e-30)
+            rows.append(_row(f"{k:g} cells{_occl_tag(occl)}", k, run, leak, dleak,
+                             thickness_m=k * cell, **occl))
+    return _figure("thin_wall", "Thin wall between a lit and a dark room",
+                   "wall thickness (cells)",
+                   "0: no light reaches the dark room (deviation = its mean indirect / the lit "
+                   "room's)", rows, cell_m=cell)
+
+
+def case_one_cell(r: Runner) -> dict:
+    """A wall exactly one cell thick at different alignments to the grid."""
+    cell = _cell_size(r, (-2, -1, 0), (2, 1, 2))
+    rows = []
+    for occl in _occlusion_modes():
+        for frac in (0.0, 0.25, 0.5):
+            scene, right = two_rooms(r, cell, centre=frac * cell, settings=r.settings(**occl))
+            run = r.run(scene, [right])
+            lit = run.indirect().mean()
+            leak = run.indirect(0).mean() / lit if lit > 0 else math.inf
+            dleak = run.direct(0).mean() / max(run.direct().mean(), 1e-30)
+            rows.append(_row(f"offset {frac:g} cell{_occl_tag(occl)}", frac, run, leak, dleak,
+                             **occl))
+    return _figure("one_cell", "One-cell-thick wall, shifted against the grid",
+                   "wall centre offset (cells)",
+                   "0: no light reaches the dark room", rows, x_log=False, cell_m=cell)
+
+
+def case_light_inside(r: Runner) -> dict:
+    """A point light inside a closed crate 0.5 to 4 cells wide: nothing outside is lit."""
+    cell = _cell_size(r, (-3, -3, 0), (3, 3, 3))
+    rows = []
+    for occl in _occlusion_modes():
+        for k in r.p["crate_cells"]:
+            free = r.run(crate_room(r, None, r.settings(**occl)))
+            run = r.run(crate_room(r, k * cell, r.settings(**occl)))
+            rows.append(_row(f"{k:g} cells{_occl_tag(occl)}", k, run,
+                             run.indirect().mean() / max(free.indirect().mean(), 1e-30),
+                             run.direct().mean() / max(free.direct().mean(), 1e-30), **occl))
+    return _figure("light_inside", "Point light inside a closed crate", "crate size (cells)",
+                   "0: the room outside stays dark (deviation = its indirect / the same room "
+                   "with the light free)", rows)
+
+
+def case_coplanar(r: Runner) -> dict:
+    """Every triangle duplicated (same material; and a different albedo: z-fighting)."""
+    rows = []
+    for occl in _occlusion_modes():
+        clean = _cornell(r, settings=r.settings(**occl))
+        base = r.run(clean)
+        twice = np.concatenate([clean.positions, clean.positions])
+        dup = make_scene(twice, material_index=np.concatenate([clean.material_index] * 2),
+                         materials=list(clean.materials), lights=clean.lights,
+                         camera=clean.camera, settings=clean.settings)
+        grey = list(clean.materials) + [Material("grey", np.array([0.3, 0.3, 0.3], np.float32))]
+        other = np.full(clean.triangle_count, len(grey) - 1, np.int32)
+        fight = make_scene(twice, material_index=np.concatenate([clean.material_index, other]),
+                           materials=grey, lights=clean.lights, camera=clean.camera,
+                           settings=clean.settings)
+        tag = _occl_tag(occl)
+        for label, x, sc in (("clean", 0, clean), ("duplicated, same albedo", 1, dup),
+                             ("duplicated, other albedo", 2, fight)):
+            run = base if sc is clean else r.run(sc)
+            rows.append(_row(label + tag, x, run, rel_dev(run.indirect(), base.indirect()),
+                             rel_dev(run.direct(), base.direct()), **occl))
+    return _figure("coplanar", "Coplanar (duplicated) triangles", "variant",
+                   "the clean box (the z-fighting variant has no single answer)", rows,
+                   x_log=False)
+
+
+def _degenerate_sets(rng) -> dict:
+    n = 64
+    # Inside the box, so that the scene's bounds (hence the grid) stay the same.
+    p = rng.uniform(-0.6, 0.6, size=(n, 3)) + np.array([0.0, 0.0, 1.0])
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    zero = np.stack([p, p, p + d * 0.1], axis=1)  # repeated vertex
+    collinear = np.stack([p, p + d * 0.1, p + d * 0.3], axis=1)
+    nan = zero.copy()
+    nan[:, 1, 0] = np.nan
+    inf = collinear.copy()
+    inf[:, 2, 1] = np.inf
+    e = np.cross(d, [0.0, 0.0, 1.0])
+    e /= np.linalg.norm(e, axis=1, keepdims=True) + 1e-300
+    needle = np.stack([p, p + d * 0.3, p + d * 0.3 + e * 1e-7], axis=1)
+    tiny = np.stack([p, p + np.array([1e-9, 0, 0]), p + np.array([0, 1e-9, 0])], axis=1)
+    stray = np.array([[[1e4, 0, 0], [1e4 + 0.1, 0, 0], [1e4, 0.1, 0]]])
+    return {"zero-area": zero, "collinear": collinear, "NaN vertex": nan, "Inf vertex": inf,
+            "needle (1e-7 m)": needle, "tiny (1e-9 m)": tiny, "stray triangle at 1e4 m": stray}
+
+
+def case_degenerate(r: Runner) -> dict:
+    """The box plus 64 degenerate triangles of one kind each."""
+    clean = _cornell(r)
+    base = r.run(clean)
+    rows = []
+    for i, (label, tris) in enumerate(_degenerate_sets(np.random.default_rng(5)).items()):
+        sc = _with_extra_triangles(clean, tris)
+        run = r.run(sc)
+        rows.append(_row(label, i, run, rel_dev(run.indirect(), base.indirect()),
+                         rel_dev(run.direct(), base.direct()), dropped=dict(sc.dropped)))
+    return _figure("degenerate", "Degenerate triangles added to the box", "kind",
+                   "the clean box (the stray triangle changes the scene's bounds, hence the "
+                   "grid: no invariance expected)", rows, x_log=False)
+
+
+def case_albedo(r: Runner) -> dict:
+    """Every surface with albedo a in [0, 1], one bounce: indirect is linear in a."""
+    ref_a = 0.5
+    rows = []
+
+    def scene(a):
+        sc = _cornell(r, settings=r.settings(bounces=1))
+        sc.materials = [Material(m.name, np.full(3, a, np.float32)) for m in sc.materials]
+        return sc
+
+    base = r.run(scene(ref_a))
+    for a in r.p["albedos"]:
+        run = base if a == ref_a else r.run(scene(a))
+        if a > 0:
+            dev = rel_dev(run.indirect() * (ref_a / a), base.indirect())
+        else:
+            dev = float(np.abs(run.indirect()).sum() / max(np.abs(base.indirect()).sum(), 1e-300))
+        rows.append(_row(f"albedo {a:g}", a, run, dev, None,
+                         injected_flux=float(propagation.flux(run.injected).sum())
+                         if run.injected is not None else 0.0))
+    return _figure("albedo", "Albedo 0 to 1 (one bounce)", "albedo of every surface",
+                   "the albedo-0.5 indirect x a / 0.5 (exactly 0 at albedo 0)", rows,
+                   x_log=False)
+
+
+def case_grids(r: Runner) -> dict:
+    """Grid resolution 4^3 .. 128^3 (automatic iterations)."""
+    it = r.p["grid_iterations"]
+    runs = {g: r.run(_cornell(r, settings=r.settings(grid_resolution=g, iterations=it)))
+            for g in r.p["grids"]}
+    finest = runs[max(runs)]
+    rows = [_row(f"{g}^3", g, run, rel_dev(run.indirect(), finest.indirect()),
+                 indirect_mean=float(run.indirect().mean()),
+                 iterations=run.result.stats.info.get("iterations"))
+            for g, run in runs.items()]
+    return _figure("grids", f"Grid resolution ({it} iterations)", "cells per axis",
+                   f"none (deviation from the finest grid, {max(runs)}^3)", rows)
+
+
+def case_iterations(r: Runner) -> dict:
+    """Propagation iterations 1 .. 1000 (the engine stops early once a step carries < 1e-3)."""
+    runs = {k: r.run(_cornell(r, settings=r.settings(iterations=k))) for k in r.p["iterations"]}
+    last = runs[max(runs)]
+    rows = [_row(f"{k}", k, run, rel_dev(run.indirect(), last.indirect()),
+                 indirect_mean=float(run.indirect().mean()),
+                 iterations=run.result.stats.info.get("iterations"))
+            for k, run in runs.items()]
+    return _figure("iterations", "Propagation iterations", "iterations asked",
+                   f"none (deviation from {max(runs)} iterations, the converged sum)", rows)
+
+
+def _step_kwargs() -> list[dict]:
+    """Every propagation mode the current propagation.step accepts (angular x reprojection)."""
+    params = inspect.signature(propagation.step).parameters
+    reps = getattr(propagation, "REPROJECTIONS", ("kd10",))
+    modes = [{"reprojection": rep} for rep in reps] if "reprojection" in params else [{}]
+    if "angular" in params:
+        for ang in getattr(propagation, "ANGULAR_MODELS", ()):
+            if ang != "sh":
+                modes.append({"angular": ang})
+    return modes
+
+
+def energy_trace(resolution: int = 16, steps: int = 1000, **step_kwargs) -> dict:
+    """Flux per step of one VPL in free space and of a random grid, ``steps`` steps."""
+    from . import injection
+    from .grid import Grid
+
+    g = Grid((0.0, 0.0, 0.0), 1.0, resolution)
+    c = resolution / 2
+    single = injection.inject(g, np.array([[c, c, c]]), np.array([[0.0, 0.0, 1.0]]),
+                              np.ones((1, 3)))
+    rng = np.random.default_rng(7)
+    noisy = rng.normal(size=g.shape).astype(np.float32)
+    noisy[..., 0] = np.abs(noisy[..., 0]) + 0.1
+    out = {}
+    for name, start in (("single VPL", single), ("random cells", noisy)):
+        cur = start
+        fluxes = [float(propagation.flux(cur).sum())]
+        bad = 0
+        t0 = time.perf_counter()
+        for _ in range(steps):
+            nxt = propagation.step(cur, **step_kwargs)
+            bad += int((~np.isfinite(nxt)).sum())
+            fluxes.append(float(propagation.flux(nxt).sum()))
+            cur = nxt
+        out[name] = {"flux": fluxes, "max_growth": growth(itertools.pairwise(fluxes)),
+                     "nonfinite": bad, "time_s": time.perf_counter() - t0}
+    return out
+
+
+def case_energy(r: Runner) -> dict:
+    """Energy per iteration over 0..1000 steps for every propagation mode."""
+    rows = []
+    traces = {}
+    for i, kw in enumerate(_step_kwargs()):
+        mode = ", ".join(f"{k}={v}" for k, v in kw.items()) or "default"
+        tr = energy_trace(r.p["trace_grid"], r.p["trace_steps"], **kw)
+        traces[mode] = tr
+        for name, t in tr.items():
+            rows.append({"label": f"{name} ({mode})", "x": i, "nonfinite": t["nonfinite"],
+                         "energy_growth": t["max_growth"], "deviation": t["flux"][-1]
+                         / t["flux"][0], "deviation_direct": None, "time_s": t["time_s"],
+                         "steps": r.p["trace_steps"]})
+    return _figure("energy", f"Flux per propagation step, {r.p['trace_steps']} steps on "
+                   f"{r.p['trace_grid']}^3", "step",
+                   "energy never grows (deviation = flux left after the last step / injected)",
+                   rows, x_log=False, traces=traces)
+
+
+def _propagate_storage(injected: np.ndarray, steps: int, dtype) -> np.ndarray:
+    """sum_k P^k(I0) with the grid stored in ``dtype`` between steps (compute in float32)."""
+    with np.errstate(over="ignore"):
+        cur = injected.astype(dtype)
+    acc = cur.copy()
+    for _ in range(steps):
+        with np.errstate(over="ignore", invalid="ignore"):
+            nxt = propagation.step(cur.astype(np.float32)).astype(dtype)
+            acc = (acc.astype(np.float32) + nxt.astype(np.float32)).astype(dtype)
+        cur = nxt
+    return acc.astype(np.float32)
+
+
+def case_float16(r: Runner) -> dict:
+    """The Cornell box's injected grid propagated with float16 vs float32 storage, at light
+    powers 1e-6 .. 1e9 W (the injected grid scales linearly with the power)."""
+    p0 = 300.0
+    run = r.run(_cornell(r, power=p0))
+    injected = run.injected
+    steps = engine.auto_iterations(r.p["grid"])
+    rows = []
+    for p in r.p["f16_powers"]:
+        inj = injected.astype(np.float64) * (p / p0)
+        with np.errstate(over="ignore"):
+            inj32 = inj.astype(np.float32)
+        t0 = time.perf_counter()
+        ref = _propagate_storage(inj32, steps, np.float32)
+        t32 = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        half = _propagate_storage(inj32, steps, np.float16)
+        t16 = time.perf_counter() - t0
+        bad = int((~np.isfinite(half)).sum())
+        nz = ref != 0
+        underflow = float(((half == 0) & nz).sum() / max(int(nz.sum()), 1))
+        dev = rel_dev(half, ref)
+        fake = Run({}, [], run.result, t16, bad)
+        rows.append(_row(f"{p:g} W", p, fake, dev, None, underflow=underflow,
+                         time_float32_s=t32, max_abs=float(np.abs(ref).max())))
+    return _figure("float16", "float16 vs float32 grid storage", "spot power (W)",
+                   "the float32 result (relative L1 deviation of the propagated grid)", rows,
+                   steps=steps)
+
+
+CASES = (case_scale, case_translation, case_power, case_thin_wall, case_one_cell,
+         case_light_inside, case_coplanar, case_degenerate, case_albedo, case_grids,
+         case_iterations, case_energy, case_float16)
+
+
+def run_suite(profile: str = "test", cases=CASES, progress=None) -> list[dict]:
+    """Every case's figure, in order. ``progress(name, seconds)`` is called after each."""
+    r = Runner(profile)
+    out = []
+    for case in cases:
+        t0 = time.perf_counter()
+        fig = case(r)
+        fig["seconds"] = time.perf_counter() - t0
+        out.append(fig)
+        if progress is not None:
+            progress(fig["name"], fig["seconds"])
+    return out
