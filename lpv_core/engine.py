@@ -130,7 +130,6 @@ class Engine:
 
     def update(self, scene: Scene, stats: Stats | None = None) -> LPVResult:
         """RSM -> injection -> propagation -> combine for every light that contributes GI."""
-        from .rsm import render_rsm
 
         stats = stats or Stats()
         stats.dropped.update(scene.dropped)
@@ -183,12 +182,8 @@ class Engine:
             if cached is not None:
                 per_light[light.name], vpl_sample[light.name] = cached[0], cached[2]
                 continue
-            with Timer(stats, "rsm"):
-                rsm = render_rsm(self.raster, light, (lo, hi), settings.rsm_resolution)
+            rsm, vpl_sample[light.name] = self._rsm(light, (lo, hi), settings, stats)
             vpl_count += rsm.count
-            keep = slice(None, None, max(1, rsm.count // VPL_SAMPLE))
-            vpl_sample[light.name] = (rsm.position[keep].astype(np.float32),
-                                      rsm.flux[keep].astype(np.float32))
             total = None
             for group in direction_groups(rsm.normal, settings.direction_groups):
                 with Timer(stats, "injection"):
@@ -218,6 +213,15 @@ class Engine:
         return LPVResult(grid, combined, per_light, stats, vpl_sample, visibility)
 
 
+    def _rsm(self, light, bounds, settings, stats: Stats):
+        """The light's RSM and a subsample of its VPLs (positions, flux) for debug views."""
+        from .rsm import render_rsm
+
+        with Timer(stats, "rsm"):
+            rsm = render_rsm(self.raster, light, bounds, settings.rsm_resolution)
+        keep = slice(None, None, max(1, rsm.count // VPL_SAMPLE))
+        return rsm, (rsm.position[keep].astype(np.float32), rsm.flux[keep].astype(np.float32))
+
     def clear_cache(self) -> None:
         """Forget cached grids: the next update recomputes everything."""
         self._cache_key, self._cache = None, {}
@@ -243,7 +247,6 @@ class Engine:
     def _update_cascaded(self, scene: Scene, chain: list, active: list, iterations: int,
                          coarse_visibility, stats: Stats, t0: float) -> LPVResult:
         """Cascaded propagation (cascades.py): finest first, each hands on what leaves it."""
-        from .rsm import render_rsm
 
         settings = scene.settings
         lo, hi = scene.bounds()
@@ -260,12 +263,8 @@ class Engine:
                 per_light[light.name], per_light_fine[light.name] = cached[0], cached[1]
                 vpl_sample[light.name] = cached[2]
                 continue
-            with Timer(stats, "rsm"):
-                rsm = render_rsm(self.raster, light, (lo, hi), settings.rsm_resolution)
+            rsm, vpl_sample[light.name] = self._rsm(light, (lo, hi), settings, stats)
             vpl_count += rsm.count
-            keep = slice(None, None, max(1, rsm.count // VPL_SAMPLE))
-            vpl_sample[light.name] = (rsm.position[keep].astype(np.float32),
-                                      rsm.flux[keep].astype(np.float32))
             level = cascades.assign(chain, rsm.position)
             totals = [g.zeros() for g in chain]
             for group in direction_groups(rsm.normal, settings.direction_groups):
