@@ -12,7 +12,7 @@ import pytest
 bpy = pytest.importorskip("bpy")
 
 import lpv_addon
-from lpv_addon import handlers, live, operators, scenes
+from lpv_addon import handlers, live, operators, properties, scenes
 from lpv_core import exr
 
 pytestmark = pytest.mark.bpy
@@ -39,8 +39,9 @@ def test_update_computes_the_lpv_in_the_worker(box):
     assert bpy.ops.lpv.update() == {"FINISHED"}
     cur = live.STATE.current
     assert cur is not None and cur.values is not None
-    assert cur.grid.resolution == 16
-    assert cur.values.shape == (16, 16, 16, 3, 4) and np.abs(cur.values).max() > 0
+    r = properties.PRESETS["DRAFT"][2]["grid_resolution"]  # the preset the fixture chose
+    assert cur.grid.resolution == r
+    assert cur.values.shape == (r, r, r, 3, 4) and np.abs(cur.values).max() > 0
     assert set(cur.per_light) == {"Spot"}
     assert cur.vpl_position.shape[0] > 100
     assert cur.stats["ms"]["rsm"] > 0 and cur.stats["ms"]["propagation"] > 0
