@@ -1084,7 +1084,8 @@ def write_readme(data: dict, out: Path) -> Path:
         f"{meta['resolution'][0]}x{meta['resolution'][1]} pixels, LPV times are medians of "
         f"{meta['repeats']} runs, report run time {meta['seconds'] / 60:.1f} min. "
         "Regenerate with `python -m lpv_addon.report --out docs/report` (references and "
-        "Cycles sweeps are cached in `.cache/report`; `--fresh-cycles` re-times Cycles)."),
+        "Cycles sweeps are cached in `.cache/report`; `--fresh-cycles` re-times Cycles; "
+        "`--readme-only` rewrites this file from results.json)."),
         "",
         "## Verdict",
         "",
@@ -1321,8 +1322,68 @@ STABILITY_NOTES = {
 }
 
 
+def _stability_verdict(figs: list[dict]) -> list[str]:
+    """Plain-words bullets computed from the stability figures."""
+    by = {f["name"]: f for f in figs}
+    tol = _tolerances()
+    out = []
+    bad = [f["title"] for n, f in by.items() if n != "float16"
+           and any(r["nonfinite"] for r in f["rows"])]
+    out.append("- NaN/Inf: " + (f"**found** in {', '.join(bad)}." if bad else
+                                "none in any engine case."))
+    growth = max(r["energy_growth"] for f in figs for r in f["rows"])
+    out.append(f"- Energy: the largest flux growth of any propagation step is {growth:.7f} "
+               f"({'within' if growth <= 1 + tol['energy'] else '**beyond**'} 1 + "
+               f"{tol['energy']:g}, float32 rounding): energy never grows.")
+    inv = []
+    for n in ("scale", "translation", "power", "albedo"):
+        if n in by:
+            dev = max(r["deviation"] for r in by[n]["rows"])
+            inv.append(f"{n} {dev:.1e} ({'ok' if dev <= tol[n] else '**over**'} "
+                       f"{tol[n]:g})")
+    if inv:
+        out.append("- Invariances, largest relative deviation of Diffuse Indirect: "
+                   + ", ".join(inv) + ".")
+    for n, what, of in (
+            ("thin_wall", "a thin wall leaks into the dark room", "the lit room's indirect light"),
+            ("one_cell", "a one-cell wall leaks", "the lit room's indirect light"),
+            ("light_inside", "a light inside a closed crate lights the room outside",
+             "the indirect light of the same room with the light free")):
+        if n not in by:
+            continue
+        rows = by[n]["rows"]
+        off = [r["deviation"] for r in rows if not r.get("occlusion")]
+        on = [r["deviation"] for r in rows if r.get("occlusion")]
+        text = f"- Leaks: {what}: up to {_f(max(off))} x {of}"
+        if on:
+            text += f" without occlusion, up to {_f(max(on))} x with it"
+        out.append(text + " (the right answer is 0).")
+    if "coplanar" in by:
+        worst = max(by["coplanar"]["rows"], key=lambda r: r["deviation"])
+        out.append(f"- Duplicated coplanar triangles: largest deviation {_f(worst['deviation'])}"
+                   f" ({worst['label']}).")
+    if "degenerate" in by:
+        rows = by["degenerate"]["rows"]
+        harmless = [r["label"] for r in rows if r["deviation"] <= 1e-6]
+        harmful = [f"{r['label']} ({_f(r['deviation'])})" for r in rows if r["deviation"] > 1e-6]
+        out.append(f"- Degenerate triangles: no effect: {', '.join(harmless) or 'none'}; "
+                   f"changed the result: {', '.join(harmful) or 'none'}.")
+    if "float16" in by:
+        rows = by["float16"]["rows"]
+        inf = [r["x"] for r in rows if r["nonfinite"]]
+        zero = [r["x"] for r in rows if r.get("underflow", 0) > 0.5]
+        good = [r["x"] for r in rows if not r["nonfinite"] and r["deviation"] <= 1e-2]
+        out.append("- float16 storage: "
+                   + (f"within 1 % of float32 from {min(good):g} to {max(good):g} W; "
+                      if good else "never within 1 % of float32; ")
+                   + (f"Inf at {min(inf):g} W and above; " if inf else "no overflow; ")
+                   + (f"most cells flushed to 0 at {max(zero):g} W and below." if zero
+                      else "no underflow."))
+    return out
+
+
 def _stability_section(figs: list[dict], images: list[str]) -> list[str]:
-    lines = ["## Stability", "",
+    lines = ["## Stability", ""] + _stability_verdict(figs) + ["",
              ("The stability suite (lpv_core/stability.py; asserted by tests/test_stability.py "
              "at smaller sizes) runs the core engine on extreme scenes. For every case: "
              "NaN/Inf count (grid and passes), the largest energy growth of a propagation step "
@@ -1423,7 +1484,13 @@ def main(argv: list[str] | None = None) -> int:
                    help="references and Cycles sweeps (default .cache/report)")
     p.add_argument("--fresh-cycles", action="store_true", help="re-time the Cycles sweeps")
     p.add_argument("--no-stability", action="store_true", help="leave out the stability suite")
+    p.add_argument("--readme-only", action="store_true",
+                   help="only rewrite OUT/README.md from OUT/results.json (no rendering)")
     args = p.parse_args(argv)
+    if args.readme_only:
+        data = json.loads((args.out / "results.json").read_text())
+        print(write_readme(data, args.out.resolve()))
+        return 0
     mode = args.profile or ("quick" if args.quick else "full")
     prof = dict(PROFILES[mode])
     scenes = [s.strip() for s in args.scenes.split(",")] if args.scenes else list(prof["scenes"])

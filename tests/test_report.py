@@ -199,3 +199,13 @@ def test_smoke_report_writes_readme_figures_and_numbers(smoke):
     assert data["stability"] and all(f["rows"] for f in data["stability"])
     # The one-line verdict per scene goes to stdout.
     assert "cornell_spot:" in proc.stdout and "criterion" in proc.stdout
+
+
+def test_readme_can_be_rewritten_from_results_json(smoke):
+    out, _, _ = smoke
+    before = (out / "README.md").read_text()
+    (out / "README.md").unlink()
+    proc = subprocess.run([sys.executable, "-m", "lpv_addon.report", "--readme-only", "--out",
+                           str(out)], cwd=ROOT, capture_output=True, text=True, check=False)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert (out / "README.md").read_text() == before
