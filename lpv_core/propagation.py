@@ -130,35 +130,82 @@ def _m1_tables(q: int = M1_DIRECTIONS):
 def step_m1(values: np.ndarray, visibility: np.ndarray | None = None) -> np.ndarray:
     """One step with the maximum-entropy reading: the cell's lobe (closure.py) is split into
     bundles along fixed directions, each advected one cell length semi-Lagrangian, and the
-    arrivals summed as SH moments. Flux is conserved exactly (weights sum to one)."""
+    arrivals summed as SH moments. Flux is conserved exactly (weights sum to one).
+
+    Only the box of cells holding light is read; arrivals are computed offset-major
+    ((27 x 4, cells), one matmul) so each neighbour's share is one contiguous block."""
     r = values.shape[0]
-    dirs, adv, r_max = _m1_tables()
-    src = values.reshape(-1, 4)
-    held, mean_cos, d = closure.moments(src)
-    live = np.nonzero(held > 0)[0]  # empty cells send nothing: skip them
-    out = np.zeros_like(values)
-    if live.size == 0:
-        return out
-    k = closure.kappa(np.minimum(mean_cos[live], r_max)).astype(np.float32)
+    box = _live_box(values)
+    out = np.zeros((4, 3, r, r, r), np.float32)  # coefficient, colour, x, y, z
+    if box is None:
+        return np.zeros_like(values)
+    dirs, _, r_max = _m1_tables()
+    # Colour-major cells (3, x, y, z): per-offset work runs over long contiguous rows.
+    sub = np.ascontiguousarray(values[box[0][0]:box[0][1], box[1][0]:box[1][1],
+                                      box[2][0]:box[2][1]].transpose(3, 0, 1, 2, 4),
+                               dtype=np.float32)
+    shape = sub.shape[:4]
+    held, mean_cos, d = closure.moments(sub.reshape(-1, 4))
+    k = closure.kappa(np.minimum(mean_cos, r_max)).astype(np.float32)
     # kappa <= q / (4 pi) (5.1 for q = 64), so exp(kappa cos) cannot overflow.
-    bundles = np.exp(k[:, None] * (d[live] @ dirs.T))
-    scale = held[live] / bundles.sum(axis=1)
-    arrivals = np.zeros((src.shape[0], adv.shape[1]), np.float32)
-    arrivals[live] = (bundles @ adv) * scale[:, None]
-    arrivals = np.ascontiguousarray(
-        arrivals.reshape(r, r, r, 3, len(OFFSETS), 4).transpose(4, 0, 1, 2, 3, 5))
+    bundles = np.exp(dirs @ (d * k[:, None]).T)  # (q, cells): empty cells get weight 0 below
+    bundles *= (held / bundles.sum(axis=0)).astype(np.float32)[None, :]
+    arr = (_m1_adv_t() @ bundles).reshape(len(OFFSETS), 4, *shape)
+    offvis = _offset_visibilities(visibility)
     for k_off, off in enumerate(OFFSETS):
-        dst, src_sl = [slice(None)] * 3, [slice(None)] * 3
+        src_sl, dst_sl = [slice(None), slice(None)], [slice(None), slice(None)]
+        vis_sl = []
+        empty = False
         for axis in range(3):
-            if off[axis] == 1:
-                dst[axis], src_sl[axis] = slice(1, None), slice(None, -1)
-            elif off[axis] == -1:
-                dst[axis], src_sl[axis] = slice(None, -1), slice(1, None)
-        sent = arrivals[k_off][tuple(src_sl)]
-        if visibility is not None:
-            sent = sent * _offset_visibility(visibility, off)[tuple(src_sl)][..., None, None]
-        out[tuple(dst)] += sent
-    return out
+            lo, hi = box[axis]
+            s_lo, s_hi = max(lo, -off[axis]), min(hi, r - off[axis])  # sources landing inside
+            if s_hi <= s_lo:
+                empty = True
+                break
+            src_sl.append(slice(s_lo - lo, s_hi - lo))
+            dst_sl.append(slice(s_lo + off[axis], s_hi + off[axis]))
+            vis_sl.append(slice(s_lo, s_hi))
+        if empty:
+            continue
+        sent = arr[k_off][tuple(src_sl)]
+        if offvis is not None:
+            sent = sent * offvis[k_off][tuple(vis_sl)]
+        out[tuple(dst_sl)] += sent
+    return np.ascontiguousarray(out.transpose(2, 3, 4, 1, 0)).astype(values.dtype, copy=False)
+
+
+def _live_box(values: np.ndarray):
+    """Per axis [lo, hi) cell range of the cells holding light (band 0 > 0), or None."""
+    live = (values[..., 0] > 0).any(axis=-1)
+    box = []
+    for axis in range(3):
+        hit = np.nonzero(live.any(axis=tuple(a for a in range(3) if a != axis)))[0]
+        if hit.size == 0:
+            return None
+        box.append((int(hit[0]), int(hit[-1]) + 1))
+    return box
+
+
+_ADV_T = {}
+_OFFVIS: list = [None, None]  # [visibility array, its 27 offset transmittances]
+
+
+def _m1_adv_t() -> np.ndarray:
+    """The advection matrix transposed to (27 x 4, q), contiguous (offset-major arrivals)."""
+    if M1_DIRECTIONS not in _ADV_T:
+        _ADV_T[M1_DIRECTIONS] = np.ascontiguousarray(_m1_tables()[1].T)
+    return _ADV_T[M1_DIRECTIONS]
+
+
+def _offset_visibilities(visibility: np.ndarray | None):
+    """Transmittance towards each of the 27 offsets, cached for the last visibility array
+    (a propagation run reuses one array for all its steps)."""
+    if visibility is None:
+        return None
+    if _OFFVIS[0] is not visibility:
+        _OFFVIS[0] = visibility
+        _OFFVIS[1] = [_offset_visibility(visibility, off).astype(np.float32) for off in OFFSETS]
+    return _OFFVIS[1]
 
 
 def _offset_visibility(visibility: np.ndarray, off) -> np.ndarray:
