@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import areas, cascades, geometry_volume, injection, lookup, propagation
+from . import areas, cascades, geometry_volume, injection, lookup, planner, propagation
 from .grid import Grid
 from .scene import Scene
 
@@ -77,6 +77,7 @@ class Engine:
         # Incremental updates: propagated grids per light, valid while the scene key holds.
         self._cache_key = None
         self._cache: dict = {}
+        self._plans: dict = {}  # the planner's cascade decisions for the last chain
 
     @property
     def raster(self):
@@ -129,7 +130,8 @@ class Engine:
                                receiver=None if scene.receiver is None else scene.flag("receiver"))
 
     def update(self, scene: Scene, stats: Stats | None = None) -> LPVResult:
-        """RSM -> injection -> propagation -> combine for every light that contributes GI."""
+        """RSM -> injection -> propagation (-> bounces) -> combine for every light that
+        contributes GI, on a chain of cascades (a single grid is a chain of one)."""
 
         stats = stats or Stats()
         stats.dropped.update(scene.dropped)
@@ -141,15 +143,17 @@ class Engine:
             return LPVResult(None, None, {}, stats)
         lo, hi = scene.bounds()
         chain = cascades.place(lo, hi, settings.grid_resolution, settings.cascades, scene.camera)
+        if len(chain) == 1 and settings.cascades > 1:
+            stats.skip("cascades", f"{settings.cascades - 1} inner cascades",
+                       "no camera to centre them on")
+        with Timer(stats, "planner"):
+            chain = self._plan_cascades(scene, chain, stats)
         grid = chain[-1]
         stats.info["grid"] = {"origin": list(grid.origin), "cell_size": grid.cell_size,
                               "resolution": grid.resolution}
         if len(chain) > 1:
             stats.info["cascades"] = [{"origin": list(g.origin), "cell_size": g.cell_size}
                                       for g in chain]
-        elif settings.cascades > 1:
-            stats.skip("cascades", f"{settings.cascades - 1} inner cascades",
-                       "no camera to centre them on")
         active = []
         for light in scene.lights:
             reason = _no_gi_reason(light, settings.intensity)
@@ -170,48 +174,55 @@ class Engine:
         backend = self.backend(settings, stats)
         iterations = settings.iterations or auto_iterations(settings.grid_resolution,
                                                             settings.angular)
-        visibility = self._visibility(scene, grid, stats)
-        if len(chain) > 1:
-            return self._update_cascaded(scene, chain, active, iterations, visibility, stats, t0)
-        vpl_sample = {}
-        per_light = {}
+        visibilities = [self._visibility(scene, g, stats) for g in chain]
+        run = _ChainRun(chain, visibilities, iterations, settings, backend, stats)
+        per_light, vpl_sample = {}, {}
         vpl_count = 0
-        run_iterations = []
         for light in active:
             cached = self._cached(light, stats)
             if cached is not None:
-                per_light[light.name], vpl_sample[light.name] = cached[0], cached[2]
+                per_light[light.name], vpl_sample[light.name] = cached
                 continue
-            rsm, vpl_sample[light.name] = self._rsm(light, (lo, hi), settings, stats)
-            vpl_count += rsm.count
-            total = None
-            for group in direction_groups(rsm.normal, settings.direction_groups):
-                with Timer(stats, "injection"):
-                    injected = _inject(backend, grid, rsm.position[group], rsm.normal[group],
-                                       rsm.flux[group], visibility)
-                with Timer(stats, "propagation"):
-                    prop = backend.propagate(injected, iterations,
-                                             reprojection=settings.reprojection,
-                                             angular=settings.angular, visibility=visibility)
-                    backend.discard(injected)
-                run_iterations.append(prop.iterations)
-                with Timer(stats, "combine"):
-                    total = prop.values if total is None else total + prop.values
-            if total is None:
-                total = grid.zeros()
-            if settings.bounces > 1:
-                total = self._more_bounces(scene, grid, total, iterations, visibility,
-                                           backend, stats)
-            with Timer(stats, "combine"):
-                per_light[light.name] = total
-            self._cache[light.name] = (light_key(light), total, None, vpl_sample[light.name])
+            with Timer(stats, "planner"):
+                reach = [planner.light_reach(light, g, scene, planner.cascade_label(c, g))
+                         for c, g in enumerate(chain)]
+            planner.record(reach[-1], stats, "rsm")
+            if not reach[-1].keep:  # reaches no caster at all: no RSM either
+                totals = [g.zeros() for g in chain]
+                vpl_sample[light.name] = (np.zeros((0, 3), np.float32),
+                                          np.zeros((0, 3), np.float32))
+            else:
+                planner.record(reach[:-1], stats, "injection")
+                rsm, vpl_sample[light.name] = self._rsm(light, (lo, hi), settings, stats)
+                vpl_count += rsm.count
+                totals = run.propagate(rsm.position, rsm.normal, rsm.flux,
+                                       [d.keep for d in reach])
+                if settings.bounces > 1:
+                    totals = self._more_bounces(scene, run, totals)
+            per_light[light.name] = totals
+            self._cache[light.name] = (light_key(light), totals, vpl_sample[light.name])
         with Timer(stats, "combine"):
-            combined = combine(grid, per_light, active, settings.intensity)
+            levels = [combine(g, {n: v[c] for n, v in per_light.items()}, active,
+                              settings.intensity) for c, g in enumerate(chain)]
         stats.info["vpls"] = vpl_count
-        stats.info["iterations"] = run_iterations
+        stats.info["iterations"] = run.iterations
         stats.ms["lpv_update"] = (time.perf_counter() - t0) * 1000.0
-        return LPVResult(grid, combined, per_light, stats, vpl_sample, visibility)
+        outer = {n: v[-1] for n, v in per_light.items()}
+        return LPVResult(grid, levels[-1], outer, stats, vpl_sample, visibilities[-1],
+                         [(g, levels[c], visibilities[c]) for c, g in enumerate(chain[:-1])])
 
+    def _plan_cascades(self, scene: Scene, chain: list, stats: Stats) -> list:
+        """The chain without the cascades the planner finds no work for (cached per chain)."""
+        if len(chain) == 1:
+            return chain
+        key = ("cascade_plan", tuple((g.origin, g.cell_size, g.resolution) for g in chain),
+               geometry_key(scene))
+        decisions = self._plans.get(key)
+        if decisions is None:
+            decisions = planner.cascade_plan(chain, scene)
+            self._plans = {key: decisions}
+        keep = planner.record(decisions, stats, "cascades")
+        return [g for g, k in zip(chain, keep) if k]
 
     def _rsm(self, light, bounds, settings, stats: Stats):
         """The light's RSM and a subsample of its VPLs (positions, flux) for debug views."""
@@ -236,111 +247,108 @@ class Engine:
         return self._cache[key]
 
     def _cached(self, light, stats: Stats):
-        """(coarse grid, fine grids, VPL sample) of ``light`` if nothing it depends on changed."""
+        """(grids per cascade, VPL sample) of ``light`` if nothing it depends on changed."""
         entry = self._cache.get(light.name)
         if entry is None or entry[0] != light_key(light):
             return None
         stats.skip("rsm", f"light '{light.name}'",
                    "unchanged since the last update: its propagated grids are reused")
-        return entry[1], entry[2], entry[3]
+        return entry[1], entry[2]
 
-    def _update_cascaded(self, scene: Scene, chain: list, active: list, iterations: int,
-                         coarse_visibility, stats: Stats, t0: float) -> LPVResult:
-        """Cascaded propagation (cascades.py): finest first, each hands on what leaves it."""
-
-        settings = scene.settings
-        lo, hi = scene.bounds()
-        visibilities = [self._visibility(scene, g, None) for g in chain[:-1]]
-        visibilities.append(coarse_visibility)
-        if settings.bounces > 1:
-            stats.skip("bounces", "bounces 2+", "not implemented with cascades yet")
-        per_light, per_light_fine, vpl_sample = {}, {}, {}
-        vpl_count = 0
-        run_iterations = []
-        for light in active:
-            cached = self._cached(light, stats)
-            if cached is not None:
-                per_light[light.name], per_light_fine[light.name] = cached[0], cached[1]
-                vpl_sample[light.name] = cached[2]
-                continue
-            rsm, vpl_sample[light.name] = self._rsm(light, (lo, hi), settings, stats)
-            vpl_count += rsm.count
-            level = cascades.assign(chain, rsm.position)
-            totals = [g.zeros() for g in chain]
-            for group in direction_groups(rsm.normal, settings.direction_groups):
-                idx = np.arange(rsm.count)[group]
-                carry = None
-                for c, g in enumerate(chain):
-                    sel = idx[level[idx] == c]
-                    with Timer(stats, "injection"):
-                        injected = injection.inject(g, rsm.position[sel], rsm.normal[sel],
-                                                    rsm.flux[sel], visibility=visibilities[c])
-                        if carry is not None:
-                            cascades.hand_on(chain[c - 1], carry, g, injected)
-                    with Timer(stats, "propagation"):
-                        prop = propagation.propagate(
-                            injected, iterations, reprojection=settings.reprojection,
-                            angular=settings.angular, visibility=visibilities[c],
-                            capture_outflow=c < len(chain) - 1)
-                    run_iterations.append(prop.iterations)
-                    totals[c] += prop.values
-                    carry = prop.outflow
-            per_light[light.name] = totals[-1]
-            per_light_fine[light.name] = totals[:-1]
-            self._cache[light.name] = (light_key(light), totals[-1], totals[:-1],
-                                       vpl_sample[light.name])
-        with Timer(stats, "combine"):
-            combined = combine(chain[-1], per_light, active, settings.intensity)
-            fine = [(g, combine(g, {n: v[c] for n, v in per_light_fine.items()}, active,
-                                settings.intensity), visibilities[c])
-                    for c, g in enumerate(chain[:-1])]
-        stats.info["vpls"] = vpl_count
-        stats.info["iterations"] = run_iterations
-        stats.ms["lpv_update"] = (time.perf_counter() - t0) * 1000.0
-        return LPVResult(chain[-1], combined, per_light, stats, vpl_sample, coarse_visibility,
-                         fine)
-
-    def _more_bounces(self, scene: Scene, grid: Grid, first: np.ndarray, iterations: int,
-                      visibility, backend, stats: Stats) -> np.ndarray:
+    def _more_bounces(self, scene: Scene, run: _ChainRun, first: list) -> list:
         """Add bounces 2..N [KD10 sec. 6]: every caster surfel reflects the light of the
-        previous bounce (irradiance on each side x area x GI reflectance) as new VPLs, which
-        are injected and propagated like the RSM's. Each bounce carries at most the albedo's
-        share of the last, so the series converges."""
-        settings = scene.settings
+        previous bounce (irradiance on each side, read from every cascade, x area x GI
+        reflectance) as new VPLs, injected and propagated like the RSM's. Each bounce carries
+        at most the albedo's share of the last, so the series converges."""
+        settings, stats, chain = scene.settings, run.stats, run.chain
         with Timer(stats, "bounces"):
             casters = np.nonzero(scene.flag("caster"))[0]
             pos, nrm, area, tri = geometry_volume.surfels(
-                scene.positions[casters], 0.5 * grid.cell_size, with_index=True)
+                scene.positions[casters], 0.5 * chain[0].cell_size, with_index=True)
             refl = scene.reflectance_per_triangle()[casters][tri].astype(np.float64)
             pos2 = np.concatenate([pos, pos])
             nrm2 = np.concatenate([nrm, -nrm])  # surfaces reflect on both sides
             area2 = np.concatenate([area, area])[:, None]
             refl2 = np.concatenate([refl, refl])
-        total = first.copy()
+        total = [v.copy() for v in first]
         previous = first
         for _ in range(settings.bounces - 1):
             with Timer(stats, "bounces"):
-                e = backend.irradiance(grid, previous, pos2, nrm2, angular=settings.angular,
-                                       visibility=visibility)
+                e = np.zeros((pos2.shape[0], 3))
+                for c, g in enumerate(chain):
+                    e += run.backend.irradiance(g, previous[c], pos2, nrm2,
+                                                angular=settings.angular,
+                                                visibility=run.visibilities[c])
                 flux = e * area2 * refl2
                 keep = flux.max(axis=1) > 0
             if not keep.any():
                 stats.skip("bounces", "further bounces", "no light reaches any caster")
                 break
-            bounce = None
-            for group in direction_groups(nrm2[keep], settings.direction_groups):
-                with Timer(stats, "injection"):
-                    injected = _inject(backend, grid, pos2[keep][group], nrm2[keep][group],
-                                       flux[keep][group], visibility)
-                with Timer(stats, "propagation"):
-                    prop = backend.propagate(injected, iterations,
-                                             reprojection=settings.reprojection,
-                                             angular=settings.angular, visibility=visibility)
-                    backend.discard(injected)
-                bounce = prop.values if bounce is None else bounce + prop.values
-            total += bounce
+            bounce = run.propagate(pos2[keep], nrm2[keep], flux[keep])
+            for c in range(len(chain)):
+                total[c] += bounce[c]
             previous = bounce
         return total
+
+
+class _ChainRun:
+    """Injection and propagation of VPL sets through one update's cascade chain (finest
+    first): each VPL goes to its cascade (cascades.assign), and the light leaving a cascade is
+    handed on to the next coarser one [KD10 sec. 4.1]. A single grid is a chain of one."""
+
+    def __init__(self, chain: list, visibilities: list, iterations: int, settings, backend,
+                 stats: Stats):
+        self.chain, self.visibilities = chain, visibilities
+        self.iterations_cap, self.settings = iterations, settings
+        self.backend, self.stats = backend, stats
+        self.iterations: list = []  # steps run per propagation
+
+    def propagate(self, positions, normals, flux, reach: list | None = None) -> list:
+        """Propagated grids (one per cascade) of the VPLs (N, 3) x3; ``reach[c]`` False: the
+        planner found that these VPLs cannot land in cascade c."""
+        chain, stats, be, settings = self.chain, self.stats, self.backend, self.settings
+        last = len(chain) - 1
+        n = positions.shape[0]
+        level = cascades.assign(chain, positions) if last else np.zeros(n, np.int64)
+        totals = [g.zeros() for g in chain]
+        for group in direction_groups(normals, settings.direction_groups):
+            idx = np.arange(n)[group]
+            carry = None
+            for c, g in enumerate(chain):
+                sel = idx[level[idx] == c]
+                if carry is None and (sel.size == 0 or (reach is not None and not reach[c])):
+                    continue  # nothing lands in this cascade and nothing comes in from inside
+                with Timer(stats, "injection"):
+                    injected = _inject(be, g, positions[sel], normals[sel], flux[sel],
+                                       self.visibilities[c])
+                    if carry is not None:
+                        if hasattr(injected, "read"):  # a GPU grid: hand on in numpy
+                            gpu, injected = injected, injected.read()
+                            be.discard(gpu)
+                        cascades.hand_on(chain[c - 1], carry, g, injected)
+                with Timer(stats, "propagation"):
+                    prop = be.propagate(injected, self.iterations_cap,
+                                        reprojection=settings.reprojection,
+                                        angular=settings.angular,
+                                        visibility=self.visibilities[c],
+                                        capture_outflow=c < last)
+                    be.discard(injected)
+                self.iterations.append(prop.iterations)
+                with Timer(stats, "combine"):
+                    totals[c] += prop.values
+                carry = prop.outflow
+        return totals
+
+
+def geometry_key(scene: Scene) -> str:
+    """Digest of the geometry and the caster / receiver / occluder flags (planner decisions)."""
+    import hashlib
+
+    h = hashlib.blake2b(digest_size=16)
+    for arr in (scene.positions, scene.flag("caster"), scene.flag("occluder"),
+                scene.flag("receiver")):
+        h.update(np.ascontiguousarray(arr).tobytes())
+    return h.hexdigest()
 
 
 def scene_key(scene: Scene, chain) -> str:
@@ -453,12 +461,12 @@ def propagation_visibility(scene: Scene, grid: Grid, stats: Stats | None = None)
         if stats is not None:
             stats.info["clip_areas"] = sum(a.type == "CLIP" for a in scene.areas)
     if scene.settings.occlusion:
-        occluders = scene.flag("occluder")
-        if not occluders.any():
-            if stats is not None:
-                stats.skip("occlusion", "geometry volume", "no occluder in the scene")
+        need = planner.occlusion_needed(scene, grid, f"the grid (cell {grid.cell_size:.4g} m)")
+        if not need.keep:
+            planner.record(need, stats, "occlusion")
         else:
             t0 = time.perf_counter()
+            occluders = scene.flag("occluder")
             gv = geometry_volume.occluder_visibility(grid, scene.positions[occluders])
             visibility = gv if visibility is None else visibility * gv
             if stats is not None:
