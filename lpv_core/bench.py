@@ -1,9 +1,16 @@
 """Benchmark: per-stage medians of the LPV update and render on the built-in Cornell box.
 
     python -m lpv_core.bench [--quick] [--json] [--repeat N] [--resolution WxH]
+                             [--sweep | --sweep-quick] [--sweep-only]
 
 Prints one JSON object (--json) or a table. Times are medians over the repeats, measured in one
 run on this machine; compare ratios, not absolute numbers, across machines.
+
+``--sweep`` adds the scaling sweep of bench_sweep.py (grids 16^3-64^3, 1-4 cascades, RSM
+64^2-512^2, 1k-1M triangles, 1-16 lights, numpy and gl backends, cost-growth exponents, a
+roofline of the propagation step and the 1280x720 lookup) under the key "sweep";
+``--sweep-quick`` a tiny version of it (for tests); ``--sweep-only`` skips the Cornell box
+figures. See docs/benchmarks.md.
 """
 
 from __future__ import annotations
@@ -109,20 +116,44 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--repeat", type=int, default=None)
     p.add_argument("--resolution", default=None, help="WxH of the rendered image")
+    sweep = p.add_mutually_exclusive_group()
+    sweep.add_argument("--sweep", action="store_true",
+                       help="add the full scaling sweep (bench_sweep.py, several minutes)")
+    sweep.add_argument("--sweep-quick", action="store_true",
+                       help="add a tiny scaling sweep (seconds; for tests)")
+    p.add_argument("--sweep-only", action="store_true",
+                   help="with --sweep/--sweep-quick: only the sweep, no Cornell box figures")
     args = p.parse_args(argv)
+    if args.sweep_only and not (args.sweep or args.sweep_quick):
+        p.error("--sweep-only needs --sweep or --sweep-quick")
     repeat = args.repeat or (3 if args.quick else 7)
     res = (128, 128) if args.quick else (256, 256)
     if args.resolution:
         w, h = args.resolution.lower().split("x")
         res = (int(w), int(h))
-    out = run(repeat, res, GISettings())
-    out.update(incremental(repeat, GISettings()))
+    out: dict = {}
+    if not args.sweep_only:
+        out = run(repeat, res, GISettings())
+        out.update(incremental(repeat, GISettings()))
+    if args.sweep or args.sweep_quick:
+        from . import bench_sweep
+
+        out["sweep"] = bench_sweep.run_sweep(quick=args.sweep_quick)
     if args.json:
         print(json.dumps(out))
-    else:
+        return 0
+    if not args.sweep_only:
         print(f"Cornell box, {res[0]}x{res[1]}, median of {repeat}:")
         for k, v in sorted(out["median_ms"].items(), key=lambda kv: -kv[1]):
             print(f"  {k:<14} {v:9.1f} ms")
+        for k in ("full_update_ms", "light_intensity_tweak_ms", "one_light_moved_ms",
+                  "camera_in_cell_ms"):
+            print(f"  {k:<26} {out[k]:9.1f} ms")
+    if "sweep" in out:
+        from . import bench_sweep
+
+        print()
+        print(bench_sweep.table(out["sweep"]))
     return 0
 
 

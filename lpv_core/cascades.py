@@ -19,6 +19,68 @@ from .grid import Grid, fit_grid
 
 PUSH = 0.25  # fraction of a cascade's width it is moved along the view direction
 
+# Tukey's fence for fit_bounds, in interquartile ranges beyond the quartiles. It must exceed the
+# largest tail one planar triangle has, so that no surface is fenced out by its own shape: a
+# triangle's area along an axis has a triangular density, and in the worst case (falling
+# linearly to 0 at one end) the quartiles are at 1 - sqrt(3)/2 and 1/2 of its length, its far
+# end (1/2) / (1/2 - (1 - sqrt(3)/2)) = (1 + sqrt(3)) / 2 = 1.37 interquartile ranges beyond the
+# upper quartile. That bound is tight (a finely cut worst-case triangle loses its tip piece to
+# the discrete quartiles), so we take Tukey's outlier fence 1.5, the next conventional value
+# above it: a finely tessellated big triangle, a floor or a terrain always stays inside.
+SINGLE_TRIANGLE_TAIL = (1.0 + np.sqrt(3.0)) / 2.0
+FENCE_IQR = 1.5
+
+
+def fit_bounds(scene) -> tuple[np.ndarray, np.ndarray, int, float]:
+    """Box (lo, hi) the outer cascade is fitted to, the number of triangles left outside it and
+    their share of the surface area.
+
+    Plain scene bounds let one stray triangle 10 km from a 1 m room make every cell ~700 m
+    wide. Instead: each triangle counts with its area at its centroid; per axis, the area's
+    quartiles Q1, Q3 give a fence [Q1 - F S, Q3 + F S], where S is the largest interquartile
+    range over the three axes (the grid is cubic: a scene that is flat along one axis, e.g. a
+    ground plane holding 80 % of the area, must not fence its buildings out along that axis)
+    and F = FENCE_IQR. Triangles whose centroid lies outside the fence on any axis are left out
+    of the LPV (they get no GI; VPLs and receivers there see a zero grid); the box is the exact
+    bounds of the others, so for a scene without such outliers it equals ``scene.bounds()``
+    and nothing changes. Area-weighted, because what matters for GI is surface that exchanges
+    light: a far-away triangle with little of the area exchanges little (form factor ~ A/d^2)
+    and would cost every other surface most of its resolution. A far surface with a quarter of
+    the area or more moves the quartiles and is kept.
+
+    The camera and the lights are not added: lookups happen on visible surfaces and VPLs sit on
+    lit ones, both geometry, which the box already holds unless fenced out; a camera far
+    outside (a long lens) would only fill the grid with empty space. Everything is a function
+    of the triangles only, so the placement moves and scales with the scene.
+    """
+    p = np.asarray(scene.positions, np.float64).reshape(-1, 3, 3)
+    if p.shape[0] == 0:
+        return np.zeros(3), np.zeros(3), 0, 0.0
+    area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+    total = float(area.sum())
+    weight = area if total > 0 else np.ones(len(area))
+    centroid = (p[:, 0] + p[:, 1] + p[:, 2]) / 3.0
+    q1 = np.array([_weighted_quantile(centroid[:, a], weight, 0.25) for a in range(3)])
+    q3 = np.array([_weighted_quantile(centroid[:, a], weight, 0.75) for a in range(3)])
+    spread = float(np.max(q3 - q1))
+    keep = np.all((centroid >= q1 - FENCE_IQR * spread)
+                  & (centroid <= q3 + FENCE_IQR * spread), axis=1)
+    if not keep.any():  # cannot happen (the median triangle is inside), kept for safety
+        keep[:] = True
+    kept = p[keep].reshape(-1, 3)
+    outside = int((~keep).sum())
+    share = float(area[~keep].sum() / total) if total > 0 else 0.0
+    return kept.min(axis=0), kept.max(axis=0), outside, share
+
+
+def _weighted_quantile(x: np.ndarray, w: np.ndarray, q: float) -> float:
+    """Smallest value of ``x`` whose cumulative weight (sorted by x) reaches ``q`` of the total
+    (an actual data value: exact under translation and scaling)."""
+    order = np.argsort(x, kind="stable")
+    cum = np.cumsum(w[order])
+    i = int(np.searchsorted(cum, q * cum[-1], side="left"))
+    return float(x[order][min(i, len(x) - 1)])
+
 
 def place(lo, hi, resolution: int, count: int, camera=None) -> list[Grid]:
     """Cascade grids, finest first; the last one is fitted to the scene bounds [lo, hi]."""

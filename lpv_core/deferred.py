@@ -37,7 +37,7 @@ def render(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats | None = N
         pos = frame.position[mask]
         nrm = frame.normal[mask].astype(np.float64)
         color[mask] = frame.albedo[mask]
-        lo, hi = scene.bounds()
+        lo, hi = engine.lpv_bounds(scene)  # shadow maps cover the LPV box, not outliers
         with Timer(stats, "direct"):
             e_dir = np.zeros((pos.shape[0], 3))
             for light in scene.lights:

@@ -78,6 +78,7 @@ class Engine:
         self._cache_key = None
         self._cache: dict = {}
         self._plans: dict = {}  # the planner's cascade decisions for the last chain
+        self._bounds = None  # (geometry key, lo, hi, outside count, outside area share)
 
     @property
     def raster(self):
@@ -124,10 +125,31 @@ class Engine:
         return self._gl
 
     def upload(self, scene: Scene, stats: Stats) -> None:
+        """Send the scene's triangles to the rasteriser, relative to the LPV box's centre (so a
+        far outlier does not cost the scene float32 precision)."""
+        lo, hi = self.lpv_bounds(scene, stats)
         with Timer(stats, "upload"):
             self.raster.upload(scene.positions, scene.normals, scene.albedo_per_triangle(),
                                scene.reflectance_per_triangle(),
-                               receiver=None if scene.receiver is None else scene.flag("receiver"))
+                               receiver=None if scene.receiver is None else scene.flag("receiver"),
+                               origin=0.5 * (lo + hi))
+
+    def lpv_bounds(self, scene: Scene, stats: Stats | None = None, geo: str | None = None):
+        """The box the LPV covers (cascades.fit_bounds: far outliers left out, listed in the
+        stats), cached per geometry."""
+        geo = geo or geometry_key(scene)
+        if self._bounds is None or self._bounds[0] != geo:
+            self._bounds = (geo, *cascades.fit_bounds(scene))
+        _, lo, hi, outside, share = self._bounds
+        if stats is not None:
+            stats.info["lpv_bounds"] = {"lo": lo.tolist(), "hi": hi.tolist(),
+                                        "outside_triangles": outside,
+                                        "outside_area_share": share}
+            if outside and not any(s["stage"] == "lpv" and s["what"].endswith("surface area)")
+                                   for s in stats.skipped):
+                stats.skip("lpv", f"{outside} triangles ({share:.2%} of the surface area)",
+                           "far outliers: outside the LPV, they get no GI")
+        return lo, hi
 
     def update(self, scene: Scene, stats: Stats | None = None) -> LPVResult:
         """RSM -> injection -> propagation (-> bounces) -> combine for every light that
@@ -141,13 +163,15 @@ class Engine:
             stats.skip("lpv", "scene", "no geometry")
             stats.ms["lpv_update"] = 0.0
             return LPVResult(None, None, {}, stats)
-        lo, hi = scene.bounds()
+        with Timer(stats, "change_tracking"):
+            geo = geometry_key(scene)
+        lo, hi = self.lpv_bounds(scene, stats, geo)
         chain = cascades.place(lo, hi, settings.grid_resolution, settings.cascades, scene.camera)
         if len(chain) == 1 and settings.cascades > 1:
             stats.skip("cascades", f"{settings.cascades - 1} inner cascades",
                        "no camera to centre them on")
         with Timer(stats, "planner"):
-            chain = self._plan_cascades(scene, chain, stats)
+            chain = self._plan_cascades(scene, chain, stats, geo)
         grid = chain[-1]
         stats.info["grid"] = {"origin": list(grid.origin), "cell_size": grid.cell_size,
                               "resolution": grid.resolution}
@@ -162,7 +186,7 @@ class Engine:
             else:
                 active.append(light)
         with Timer(stats, "change_tracking"):
-            key = scene_key(scene, chain)
+            key = scene_key(scene, chain, geo)
         if key != self._cache_key:
             self._cache_key, self._cache = key, {}
         if not active:
@@ -211,12 +235,11 @@ class Engine:
         return LPVResult(grid, levels[-1], outer, stats, vpl_sample, visibilities[-1],
                          [(g, levels[c], visibilities[c]) for c, g in enumerate(chain[:-1])])
 
-    def _plan_cascades(self, scene: Scene, chain: list, stats: Stats) -> list:
+    def _plan_cascades(self, scene: Scene, chain: list, stats: Stats, geo: str) -> list:
         """The chain without the cascades the planner finds no work for (cached per chain)."""
         if len(chain) == 1:
             return chain
-        key = ("cascade_plan", tuple((g.origin, g.cell_size, g.resolution) for g in chain),
-               geometry_key(scene))
+        key = ("cascade_plan", tuple((g.origin, g.cell_size, g.resolution) for g in chain), geo)
         decisions = self._plans.get(key)
         if decisions is None:
             decisions = planner.cascade_plan(chain, scene)
@@ -331,6 +354,7 @@ class _ChainRun:
                                         reprojection=settings.reprojection,
                                         angular=settings.angular,
                                         visibility=self.visibilities[c],
+                                        occlude_first_step=True,
                                         capture_outflow=c < last)
                     be.discard(injected)
                 self.iterations.append(prop.iterations)
@@ -351,15 +375,15 @@ def geometry_key(scene: Scene) -> str:
     return h.hexdigest()
 
 
-def scene_key(scene: Scene, chain) -> str:
+def scene_key(scene: Scene, chain, geo: str | None = None) -> str:
     """Digest of everything a light's propagated grid depends on besides the light itself:
     geometry, GI reflectance, flags, areas, grid placement and the settings (not the global
     intensity, which only re-combines)."""
     import hashlib
 
     h = hashlib.blake2b(digest_size=16)
-    for arr in (scene.positions, scene.normals, scene.reflectance_per_triangle(),
-                scene.flag("caster"), scene.flag("occluder")):
+    h.update((geo or geometry_key(scene)).encode())  # positions and flags
+    for arr in (scene.normals, scene.reflectance_per_triangle()):
         h.update(np.ascontiguousarray(arr).tobytes())
     for area in scene.areas:
         h.update(repr((area.type, np.asarray(area.matrix).tobytes(), area.falloff,

@@ -97,6 +97,7 @@ def quadrature_directions(q: int = 64) -> np.ndarray:
 
 
 M1_DIRECTIONS = 64
+LAMBERTIAN_MEAN_COSINE = 2.0 / 3.0  # flux-weighted mean cosine of a diffuse emitter's light
 OFFSETS = [(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)]
 
 
@@ -105,8 +106,17 @@ def _m1_tables(q: int = M1_DIRECTIONS):
 
     A bundle moving one cell length along w from a cell spreads over the 27 neighbours with
     trilinear weights prod_axis (1 - |w_a|) or |w_a| (on the side w_a points to); it arrives as
-    SH Y(w) per unit flux. The lobe cannot be narrower than the bundle spacing sqrt(4 pi / q):
-    kappa <= q / (4 pi), i.e. mean cosine <= coth(k) - 1/k (0.804 for q = 64).
+    SH Y(w) per unit flux.
+
+    The cap: a cell's lobe is read no narrower than the emission of a diffuse surface, mean
+    cosine 2/3 (int cos^2 / int cos over the hemisphere), which is what every injected VPL
+    holds. Two moments cannot tell a beam from a cell-sized bundle of diverging rays, and a
+    vMF reading is more peaked about its mean than such a bundle, so a narrower reading pushes
+    light towards the mean direction at every step and the error compounds: above a wide
+    diffuse emitter the light piles up over its centre (measured: 1.8x too bright 4 cells
+    above a 4-cell patch, 0.5x to the sides, the same at 32^3; docs/algorithm.md). The bundle
+    spacing allows narrower lobes (kappa <= q / (4 pi), mean cosine 0.804 for q = 64), so the
+    2/3 cap is the binding one.
     """
     if q not in _M1:
         dirs = quadrature_directions(q)
@@ -122,7 +132,7 @@ def _m1_tables(q: int = M1_DIRECTIONS):
                     w *= np.where(np.sign(comp) == off[axis], np.abs(comp), 0.0)
             adv[:, k, :] = w[:, None] * basis
         k_max = q / (4.0 * np.pi)
-        r_max = 1.0 / np.tanh(k_max) - 1.0 / k_max
+        r_max = min(1.0 / np.tanh(k_max) - 1.0 / k_max, LAMBERTIAN_MEAN_COSINE)
         _M1[q] = (dirs.astype(np.float32), adv.reshape(q, -1).astype(np.float32), float(r_max))
     return _M1[q]
 
@@ -147,7 +157,7 @@ def step_m1(values: np.ndarray, visibility: np.ndarray | None = None) -> np.ndar
     shape = sub.shape[:4]
     held, mean_cos, d = closure.moments(sub.reshape(-1, 4))
     k = closure.kappa(np.minimum(mean_cos, r_max)).astype(np.float32)
-    # kappa <= q / (4 pi) (5.1 for q = 64), so exp(kappa cos) cannot overflow.
+    # kappa <= kappa(2/3) ~ 3.1, so exp(kappa cos) cannot overflow.
     bundles = np.exp(dirs @ (d * k[:, None]).T)  # (q, cells): empty cells get weight 0 below
     bundles *= (held / bundles.sum(axis=0)).astype(np.float32)[None, :]
     arr = (_m1_adv_t() @ bundles).reshape(len(OFFSETS), 4, *shape)

@@ -118,17 +118,23 @@ class Rasterizer:
         self._fbos: dict = {}
         self.origin = np.zeros(3)
 
-    def upload(self, positions, normals, albedo, reflectance, key=None, receiver=None) -> None:
+    def upload(self, positions, normals, albedo, reflectance, key=None, receiver=None,
+               origin=None) -> None:
         """Upload (T,3,3) corners and normals with (T,3) per-triangle colours and an optional
-        (T,) receiver flag (default: every triangle receives GI)."""
+        (T,) receiver flag (default: every triangle receives GI). Positions are kept relative
+        to ``origin`` (default: the centre of the vertices' bounds) for float32 precision."""
         if key is not None and key == self._key:
             return
         pos = np.asarray(positions, np.float64).reshape(-1, 3, 3)
         t = pos.shape[0]
         # Keep vertex positions relative to a scene origin: float32 precision far from 0.
-        self.origin = (
-            0.5 * (pos.reshape(-1, 3).min(0) + pos.reshape(-1, 3).max(0)) if t else np.zeros(3)
-        )
+        if origin is not None:
+            self.origin = np.asarray(origin, np.float64).reshape(3)
+        else:
+            self.origin = (
+                0.5 * (pos.reshape(-1, 3).min(0) + pos.reshape(-1, 3).max(0)) if t
+                else np.zeros(3)
+            )
         rel = (pos - self.origin).astype(np.float32)
         data = np.empty((t, 3, 13), np.float32)
         data[..., 0:3] = rel

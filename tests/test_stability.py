@@ -100,9 +100,6 @@ def test_duplicated_coplanar_triangles_change_nothing_without_occlusion(suite):
     assert rows["duplicated, same albedo"]["deviation"] <= 1e-3
 
 
-@pytest.mark.xfail(reason="the geometry volume sums the blocking of every occluding triangle, "
-                   "so a surface duplicated in place blocks twice (Cycles renders it once)",
-                   strict=False)
 def test_duplicated_coplanar_triangles_change_nothing_with_occlusion(suite):
     rows = {r["label"]: r for r in _rows(suite, "coplanar")}
     label = "duplicated, same albedo, occlusion"

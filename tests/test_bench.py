@@ -1,0 +1,162 @@
+"""The benchmark's output: the quick JSON keys, and the tiny scaling sweep (bench_sweep.py).
+
+No timed assertions: only that every swept value has its figures, that they are positive and
+finite, that exponents are fitted from at least 3 points, and that roofline ratios are in
+(0, 1] or carry the note explaining why not.
+"""
+
+import json
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from conftest import ROOT
+
+from lpv_core import bench_sweep
+
+QUICK_KEYS = ("full_update_ms", "light_intensity_tweak_ms", "one_light_moved_ms",
+              "camera_in_cell_ms")
+
+
+@pytest.fixture(scope="module")
+def quick_json() -> dict:
+    """One run of the CLI as documented: --quick --json plus the tiny sweep."""
+    proc = subprocess.run([sys.executable, "-m", "lpv_core.bench", "--quick", "--json",
+                           "--sweep-quick"], check=False, cwd=ROOT, capture_output=True,
+                          text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return json.loads(proc.stdout)  # exactly one JSON object (json.loads rejects extra data)
+
+
+def _finite_positive(v) -> bool:
+    return isinstance(v, (int, float)) and math.isfinite(v) and v > 0
+
+
+def test_quick_json_keys(quick_json):
+    for key in QUICK_KEYS:
+        assert _finite_positive(quick_json[key]), key
+    assert quick_json["backend"] in ("numpy", "gl", "auto")
+    assert all(math.isfinite(v) and v >= 0 for v in quick_json["median_ms"].values())
+
+
+def test_sweep_has_every_value(quick_json):
+    sweep = quick_json["sweep"]
+    assert sweep["quick"] is True
+    for dim in bench_sweep.DIMENSIONS:
+        cases = sweep["engine"][dim]
+        for backend in bench_sweep.BACKENDS:
+            got = [c["value"] for c in cases if c["backend"] == backend]
+            assert got == list(bench_sweep.QUICK[dim]), (dim, backend)
+        for c in cases:
+            if "skipped" in c:
+                assert c["backend"] != "numpy", c  # the numpy backend always runs
+                assert isinstance(c["skipped"], str) and c["skipped"], c
+                continue
+            ms = c["median_ms"]
+            for stage in ("rsm", "injection", "propagation", "propagation_per_step",
+                          "geometry_volume", "lpv_update", "lookup", "total"):
+                assert _finite_positive(ms[stage]), (dim, c["value"], c["backend"], stage)
+            assert all(math.isfinite(v) and v >= 0 for v in ms.values())
+            assert c["steps"] >= 1
+            assert ms["propagation_per_step"] == pytest.approx(ms["propagation"] / c["steps"])
+
+
+def test_sweep_scales_what_it_says(quick_json):
+    engine_out = quick_json["sweep"]["engine"]
+    tris = [c["triangles"] for c in engine_out["triangles"] if c["backend"] == "numpy"]
+    assert tris == sorted(tris) and len(set(tris)) == len(tris)
+    lights = [c["lights"] for c in engine_out["lights"] if c["backend"] == "numpy"]
+    assert lights == list(bench_sweep.QUICK["lights"])
+
+
+def test_exponents_fitted_from_three_points(quick_json):
+    fits = quick_json["sweep"]["exponents"]
+    for name, *_ in bench_sweep.ENGINE_FITS:
+        assert name in fits
+    assert "dense m1 step vs cells" in fits and "dense sh step vs cells" in fits
+    for name, per in fits.items():
+        fit = per["numpy"]
+        assert fit["points"] >= 3, name
+        assert math.isfinite(fit["exponent"]), name
+        gl = per.get("gl")
+        if gl is not None and gl["exponent"] is None:
+            assert gl["reason"], name
+
+
+def test_roofline_ratios(quick_json):
+    sweep = quick_json["sweep"]
+    limits = sweep["machine_limits"]
+    assert _finite_positive(limits["gflops"]) and _finite_positive(limits["bandwidth_gbs"])
+    rows = sweep["propagation"]
+    sizes = bench_sweep.QUICK["prop_sizes"]
+    assert {(r["backend"], r["angular"], r["resolution"]) for r in rows} == {
+        (b, a, s) for b in bench_sweep.BACKENDS for a in ("m1", "sh") for s in sizes}
+    for r in rows:
+        if "skipped" in r:
+            assert r["backend"] == "gl" and r["skipped"]
+            continue
+        assert _finite_positive(r["step_ms"])
+        rf = r["roofline"]
+        for key in ("flop_fraction", "bandwidth_fraction", "roofline_fraction"):
+            assert _finite_positive(rf[key]), (r, key)
+        assert rf["roofline_fraction"] == pytest.approx(
+            max(rf["flop_fraction"], rf["bandwidth_fraction"]))
+        assert rf["roofline_fraction"] <= 1.0 or rf["note"], r
+
+
+def test_lookup_rows(quick_json):
+    rows = quick_json["sweep"]["lookup"]
+    assert {(r["backend"], r["angular"]) for r in rows} == {
+        (b, a) for b in bench_sweep.BACKENDS for a in ("m1", "sh")}
+    for r in rows:
+        assert r["points"] == bench_sweep.QUICK["lookup_points"]
+        assert _finite_positive(r["ms"]) if "ms" in r else r["skipped"]
+
+
+def test_fit_exponent_recovers_a_power_law():
+    xs = [10, 100, 1000, 10000]
+    fit = bench_sweep.fit_exponent(xs, [3.0 * x**1.5 for x in xs])
+    assert fit["exponent"] == pytest.approx(1.5)
+    assert fit["points"] == 4 and fit["r2"] == pytest.approx(1.0)
+    few = bench_sweep.fit_exponent([1, 2, 2, 3], [1.0, 2.0, 2.0, float("nan")])
+    assert few["exponent"] is None and few["reason"]
+
+
+def test_step_counts_follow_the_algorithm():
+    m1 = bench_sweep.step_counts(16, "m1")
+    matmul = 3 * 2 * 64 * 108  # per cell: 3 colours x (64 bundles -> 27 neighbours x 4 SH)
+    assert matmul < m1["flops_per_cell"] < 1.1 * matmul  # the matmul dominates
+    assert bench_sweep.step_counts(32, "m1")["flops"] == pytest.approx(8 * m1["flops"])
+    sh = bench_sweep.step_counts(16, "sh")
+    assert sh["flops_per_cell"] < m1["flops_per_cell"] / 10
+    assert m1["bytes"] == sh["bytes"] == 16**3 * (48 + 24 + 48)
+    assert bench_sweep.step_counts(16, "m1", visibility=False)["bytes"] == 16**3 * 96
+    with pytest.raises(ValueError):
+        bench_sweep.step_counts(16, "p1")
+
+
+def test_roofline_notes_a_step_faster_than_the_limit():
+    counts = {"flops": 1e9, "bytes": 1e6, "bytes_materialised": 1e7}
+    limits = {"gflops": 10.0, "bandwidth_gbs": 10.0}
+    slow = bench_sweep.roofline(1000.0, counts, limits)  # 1 s for 0.1 s of FLOPs
+    assert slow["roofline_fraction"] == pytest.approx(0.1) and slow["bound"] == "compute"
+    assert "note" not in slow
+    fast = bench_sweep.roofline(10.0, counts, limits)
+    assert fast["roofline_fraction"] == pytest.approx(10.0) and fast["note"]
+
+
+def test_subdivide_keeps_the_surface():
+    tris = np.array([[[0, 0, 0], [2, 0, 0], [0, 1, 0]], [[0, 0, 1], [0, 3, 1], [1, 0, 2]]], float)
+    sub = bench_sweep.subdivide(tris, 5)
+    assert sub.shape == (2 * 25, 3, 3)
+
+    def area(t):
+        return 0.5 * np.linalg.norm(np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]), axis=1)
+
+    assert area(sub).sum() == pytest.approx(area(tris).sum())
+    # same orientation: every sub-triangle's normal matches its parent's
+    n = np.cross(sub[:, 1] - sub[:, 0], sub[:, 2] - sub[:, 0])
+    parent = np.repeat(np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0]), 25, axis=0)
+    assert np.all(np.einsum("ij,ij->i", n, parent) > 0)
