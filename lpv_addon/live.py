@@ -426,6 +426,8 @@ def poll(reply: dict | None = None) -> bool:
             except OSError:
                 pass
     _accept(result)
+    if reply.get("refresh_pending"):  # cascades were shifted for a camera move: refresh them
+        mark_dirty("refresh after the cascades moved with the camera")
     return True
 
 

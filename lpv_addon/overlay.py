@@ -74,8 +74,10 @@ void main() {
         n = -n;
     }
     float cell = grid.w;
+    /* deferred.toward_viewer: edge pixels read from the side the camera sees */
+    vec3 p = v_pos + normalize(to_eye) * nudge;
     /* lookup.sample: continuous cell coordinates (integers on cell centres) */
-    vec3 c = (v_pos + n * (0.5 * cell) - grid.xyz) / cell - 0.5;
+    vec3 c = (p + n * (0.5 * cell) - grid.xyz) / cell - 0.5;
     vec3 base = floor(c);
     vec3 f = c - base;
     ivec3 ib = ivec3(base);
@@ -147,6 +149,7 @@ def _lpv_shader():
         info.push_constant("VEC4", "params")  # resolution, weight, value scale, use visibility
         info.push_constant("VEC4", "eye")  # eye position, 1 if orthographic
         info.push_constant("VEC4", "view_dir")  # view direction, 1 if "m1" lookup
+        info.push_constant("FLOAT", "nudge")  # deferred.toward_viewer's distance
         info.sampler(0, "FLOAT_3D", "lpv_r")
         info.sampler(1, "FLOAT_3D", "lpv_g")
         info.sampler(2, "FLOAT_3D", "lpv_b")
@@ -276,6 +279,8 @@ def _draw_indirect(result, mvp: Matrix, eye4, view_dir4, weight: float,
     res = _result_resources(result)
     shader = _lpv_shader()
     angular = 1.0 if getattr(result.settings, "angular", "sh") == "m1" else 0.0
+    nudge = live.core.deferred.VIEWER_NUDGE_CELLS * min(lv["grid"].cell_size
+                                                      for lv in res["levels"])
     for i, level in enumerate(res["levels"]):
         gpu.state.blend_set(first_blend if i == 0 else "ADDITIVE")
         shader.bind()
@@ -287,6 +292,7 @@ def _draw_indirect(result, mvp: Matrix, eye4, view_dir4, weight: float,
                                         0.0 if vis is None else 1.0))
         shader.uniform_float("eye", eye4)
         shader.uniform_float("view_dir", (*view_dir4[:3], angular))
+        shader.uniform_float("nudge", nudge)
         for name, tex in zip(("lpv_r", "lpv_g", "lpv_b"), level["textures"]):
             shader.uniform_sampler(name, tex)
         plus, minus = vis if vis is not None else (res["ones"], res["ones"])

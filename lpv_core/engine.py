@@ -79,6 +79,9 @@ class Engine:
         self._cache: dict = {}
         self._plans: dict = {}  # the planner's cascade decisions for the last chain
         self._bounds = None  # (geometry key, lo, hi, outside count, outside area share)
+        self._focus_cache = None  # (geometry + camera key, visible points)
+        self._last_chain = None  # the cascades of the last update (placement hysteresis)
+        self._cache_base = self._cache_chain = None  # the cache's key without inner cascades
 
     @property
     def raster(self):
@@ -151,9 +154,15 @@ class Engine:
                            "far outliers: outside the LPV, they get no GI")
         return lo, hi
 
-    def update(self, scene: Scene, stats: Stats | None = None) -> LPVResult:
+    def update(self, scene: Scene, stats: Stats | None = None,
+               reproject: bool = False) -> LPVResult:
         """RSM -> injection -> propagation (-> bounces) -> combine for every light that
-        contributes GI, on a chain of cascades (a single grid is a chain of one)."""
+        contributes GI, on a chain of cascades (a single grid is a chain of one).
+
+        ``reproject`` (interactive use): when only the camera moved and inner cascades moved by
+        whole cells, their cached content is shifted instead of recomputed (no RSM, no
+        propagation; light that enters from outside is missing), stats.info["refresh_pending"]
+        is set, and the next update recomputes everything (the refresh fills in the rest)."""
 
         stats = stats or Stats()
         stats.dropped.update(scene.dropped)
@@ -166,7 +175,11 @@ class Engine:
         with Timer(stats, "change_tracking"):
             geo = geometry_key(scene)
         lo, hi = self.lpv_bounds(scene, stats, geo)
-        chain = cascades.place(lo, hi, settings.grid_resolution, settings.cascades, scene.camera)
+        focus = None
+        if settings.cascades > 1 and scene.camera is not None:
+            focus = self._focus(scene, stats, geo)
+        chain = self._steady(cascades.place(lo, hi, settings.grid_resolution,
+                                            settings.cascades, scene.camera, focus))
         if len(chain) == 1 and settings.cascades > 1:
             stats.skip("cascades", f"{settings.cascades - 1} inner cascades",
                        "no camera to centre them on")
@@ -187,8 +200,19 @@ class Engine:
                 active.append(light)
         with Timer(stats, "change_tracking"):
             key = scene_key(scene, chain, geo)
+            base = scene_key(scene, chain[-1:], geo)  # the same, inner cascades aside
+        if key != self._cache_key and reproject and active:
+            shifted = self._reprojected(chain, base, active, stats)
+            if shifted is not None:
+                per_light, vpl_sample = shifted
+                visibilities = [self._visibility(scene, g, stats) for g in chain]
+                self._cache_key = None  # the next update is the refresh
+                stats.info["refresh_pending"] = True
+                return self._result(chain, per_light, vpl_sample, active, settings.intensity,
+                                    visibilities, stats, 0, [], t0)
         if key != self._cache_key:
             self._cache_key, self._cache = key, {}
+            self._cache_base, self._cache_chain = base, chain
         if not active:
             if not scene.lights:
                 stats.skip("lpv", "scene", "no lights")
@@ -225,15 +249,86 @@ class Engine:
                     totals = self._more_bounces(scene, run, totals)
             per_light[light.name] = totals
             self._cache[light.name] = (light_key(light), totals, vpl_sample[light.name])
+        return self._result(chain, per_light, vpl_sample, active, settings.intensity,
+                            visibilities, stats, vpl_count, run.iterations, t0)
+
+    @staticmethod
+    def _result(chain, per_light, vpl_sample, active, intensity, visibilities, stats, vpl_count,
+                iterations, t0) -> LPVResult:
+        """Combine per-light grids (per cascade) into the LPVResult."""
         with Timer(stats, "combine"):
             levels = [combine(g, {n: v[c] for n, v in per_light.items()}, active,
-                              settings.intensity) for c, g in enumerate(chain)]
+                              intensity) for c, g in enumerate(chain)]
         stats.info["vpls"] = vpl_count
-        stats.info["iterations"] = run.iterations
+        stats.info["iterations"] = iterations
         stats.ms["lpv_update"] = (time.perf_counter() - t0) * 1000.0
         outer = {n: v[-1] for n, v in per_light.items()}
-        return LPVResult(grid, levels[-1], outer, stats, vpl_sample, visibilities[-1],
+        return LPVResult(chain[-1], levels[-1], outer, stats, vpl_sample, visibilities[-1],
                          [(g, levels[c], visibilities[c]) for c, g in enumerate(chain[:-1])])
+
+    def _reprojected(self, chain, base, active, stats: Stats):
+        """(per-light grids, VPL samples) shifted by whole cells to ``chain`` when the last
+        update differs only in where its inner cascades sat, else None."""
+        last = self._cache_chain
+        if (self._cache_key is None or base != self._cache_base or last is None
+                or len(last) != len(chain) or last[-1] != chain[-1]):
+            return None
+        offsets = []
+        for new, old in zip(chain, last):
+            k = (new.origin_array - old.origin_array) / new.cell_size
+            if (new.cell_size != old.cell_size or new.resolution != old.resolution
+                    or np.max(np.abs(k - np.round(k))) > 1e-6):
+                return None
+            offsets.append(np.round(k).astype(int))
+        entries = [self._cache.get(light.name) for light in active]
+        if any(e is None or e[0] != light_key(li) for e, li in zip(entries, active)):
+            return None  # a light changed too: recompute
+        with Timer(stats, "reprojection"):
+            per_light = {li.name: [cascades.shift(v, off) for v, off in zip(e[1], offsets)]
+                         for e, li in zip(entries, active)}
+        moved = [int(np.abs(o).max()) for o in offsets[:-1]]
+        stats.skip("propagation", "all lights",
+                   f"camera moved: cascade content shifted by {moved} cells, no RSM or "
+                   "propagation; a refresh follows")
+        return per_light, {li.name: e[2] for e, li in zip(entries, active)}
+
+    def _steady(self, chain: list) -> list:
+        """The chain with each finer cascade left where it was last update if it would move by
+        at most one of its cells (kept inside its parent): hysteresis, so that a camera
+        moving back and forth over a snapping boundary does not make the cascades flicker
+        (and a camera move within a cell does no LPV work)."""
+        last, self._last_chain = self._last_chain, None
+        if last is not None and len(last) == len(chain) and last[-1] == chain[-1]:
+            steady = [chain[-1]]
+            for new, old in zip(chain[-2::-1], last[-2::-1]):
+                moved = np.max(np.abs(new.origin_array - old.origin_array)) / new.cell_size
+                pick = old if (new.cell_size == old.cell_size and moved <= 1.0 + 1e-9) else new
+                # Nested in the (possibly kept) parent; parent bounds lie on this lattice.
+                p_lo = steady[-1].origin_array
+                p_hi = p_lo + steady[-1].cell_size * steady[-1].resolution \
+                    - pick.cell_size * pick.resolution
+                origin = np.clip(pick.origin_array, p_lo, p_hi)
+                steady.append(Grid(tuple(float(v) for v in origin), pick.cell_size,
+                                   pick.resolution))
+            chain = steady[::-1]
+        self._last_chain = chain
+        return chain
+
+    def _focus(self, scene: Scene, stats: Stats, geo: str) -> np.ndarray:
+        """World positions the camera sees, from a FOCUS_PIXELS^2 G-buffer (cascade
+        placement), cached per geometry and camera."""
+        key = (geo, np.asarray(scene.camera.view, np.float64).tobytes(),
+               np.asarray(scene.camera.projection, np.float64).tobytes())
+        if self._focus_cache is None or self._focus_cache[0] != key:
+            self.upload(scene, stats)
+            with Timer(stats, "planner"):
+                w, h = scene.camera.resolution
+                scale = FOCUS_PIXELS / max(w, h, 1)
+                frame = self.raster.render(scene.camera.view, scene.camera.projection,
+                                           max(1, round(w * scale)), max(1, round(h * scale)))
+                points = frame.position[frame.covered].astype(np.float64)
+            self._focus_cache = (key, points)
+        return self._focus_cache[1]
 
     def _plan_cascades(self, scene: Scene, chain: list, stats: Stats, geo: str) -> list:
         """The chain without the cascades the planner finds no work for (cached per chain)."""
@@ -259,6 +354,7 @@ class Engine:
     def clear_cache(self) -> None:
         """Forget cached grids: the next update recomputes everything."""
         self._cache_key, self._cache = None, {}
+        self._cache_base = self._cache_chain = None
 
     def _visibility(self, scene: Scene, grid: Grid, stats: Stats | None):
         """propagation_visibility, cached with the per-light grids (same scene key)."""
@@ -425,6 +521,7 @@ def direction_groups(normals: np.ndarray, groups: int) -> list:
     return [np.nonzero(axis == i)[0] for i in range(6) if np.any(axis == i)]
 
 
+FOCUS_PIXELS = 64  # longest side of the G-buffer that finds what the camera sees
 VPL_SAMPLE = 4096  # VPLs per light kept in LPVResult.vpls for debug views
 
 

@@ -180,10 +180,12 @@ class Server:
             return {"pid": os.getpid()}
         scene = load_scene(req["scene"])
         stats = Stats()
-        result = self.engine.update(scene, stats)
+        # Interactive updates may shift cascades for a camera move and refresh afterwards.
+        result = self.engine.update(scene, stats, reproject=cmd == "update")
         if cmd == "update":
             save_result(req["reply"], result, scene)
-            return {"stats": stats.as_dict(), "has_gi": result.values is not None}
+            return {"stats": stats.as_dict(), "has_gi": result.values is not None,
+                    "refresh_pending": bool(stats.info.get("refresh_pending"))}
         if cmd == "render":
             passes = deferred.render(self.engine, scene, result, stats)
             if req.get("exr"):

@@ -338,3 +338,51 @@ def test_incremental_updates_recompute_only_what_changed():
     sc.positions = sc.positions.copy()
     sc.positions[0, 0, 2] += 0.01
     assert _reused(eng.update(sc).stats) == []
+
+
+def test_camera_move_across_cells_shifts_cascades_then_refreshes():
+    """Issue 6: interactive updates shift inner cascades by whole cells when only the camera
+    moved (no RSM, no propagation, refresh pending); the next update recomputes and matches a
+    fresh engine. Batch updates (reproject off) always recompute."""
+    from lpv_core import cascades
+
+    settings = GISettings(grid_resolution=8, cascades=2, rsm_resolution=64, direction_groups=1)
+    sc = demo.outdoor((24, 16), settings)
+    eng = engine.Engine()
+    first = eng.update(sc, reproject=True)
+    assert len(first.fine) == 1 and "refresh_pending" not in first.stats.info
+    inner = first.fine[0][0]
+    sc.camera.view = sc.camera.view.copy()
+    sc.camera.view[:3, 3] -= sc.camera.view[:3, :3] @ np.array([4.0 * inner.cell_size, 0, 0])
+    stats = engine.Stats()
+    moved = eng.update(sc, stats, reproject=True)
+    new_inner = moved.fine[0][0]
+    k = np.round((new_inner.origin_array - inner.origin_array) / inner.cell_size).astype(int)
+    assert np.abs(k).max() >= 2, "the inner cascade should have moved"
+    assert stats.info["refresh_pending"] is True
+    assert "propagation" not in stats.ms and "rsm" not in stats.ms
+    assert any(s["stage"] == "propagation" and "shifted" in s["reason"] for s in stats.skipped)
+    np.testing.assert_array_equal(moved.fine[0][1], cascades.shift(first.fine[0][1], k))
+    np.testing.assert_array_equal(moved.values, first.values)  # the outer cascade stays
+    # The refresh: everything recomputed for the new placement, as a fresh engine does.
+    stats2 = engine.Stats()
+    refreshed = eng.update(sc, stats2, reproject=True)
+    assert "refresh_pending" not in stats2.info and stats2.ms.get("propagation", 0) > 0
+    fresh = engine.Engine().update(sc)
+    assert fresh.fine[0][0] == refreshed.fine[0][0]
+    np.testing.assert_allclose(refreshed.fine[0][1], fresh.fine[0][1], rtol=1e-5, atol=1e-7)
+    # Batch (reproject off): a camera move across cells recomputes at once.
+    sc.camera.view[:3, 3] -= sc.camera.view[:3, :3] @ np.array([4.0 * inner.cell_size, 0, 0])
+    stats3 = engine.Stats()
+    eng.update(sc, stats3)
+    assert "refresh_pending" not in stats3.info and stats3.ms.get("propagation", 0) > 0
+
+
+def test_cascade_shift_moves_content_by_whole_cells():
+    from lpv_core import cascades
+
+    v = np.arange(4 * 4 * 4 * 2, dtype=np.float32).reshape(4, 4, 4, 2)
+    s = cascades.shift(v, (1, 0, -2))
+    np.testing.assert_array_equal(s[0:3, :, 2:4], v[1:4, :, 0:2])
+    assert not s[3].any() and not s[:, :, 0:2].any()
+    assert not cascades.shift(v, (4, 0, 0)).any()
