@@ -164,6 +164,17 @@ def run(argv: list[str] | None = None) -> int:
     return render_frames(scene, out, frames, resolution, overrides, args.quiet)
 
 
+def _warn_unmodelled(dropped: dict) -> None:
+    """One stderr line per light source LPV GI does not model (also in stats.json)."""
+    if dropped.get("world_lighting_ignored"):
+        print("warning: the world (background) lights this scene; LPV GI models lamps only, "
+              "so world light is missing from Diffuse Direct and Indirect", file=sys.stderr)
+    n = dropped.get("emissive_materials_ignored", 0)
+    if n:
+        print(f"warning: {n} emissive material(s) ignored; LPV GI models lamps only",
+              file=sys.stderr)
+
+
 def render_frames(scene, out: Path, frames, resolution, overrides: dict, quiet: bool) -> int:
     """Render every frame of the range; keeps finished frames if interrupted."""
     import bpy
@@ -191,6 +202,7 @@ def render_frames(scene, out: Path, frames, resolution, overrides: dict, quiet: 
             stats.add_ms("extract", time.perf_counter() - t_ex)
             if record["settings"] is None:
                 record["settings"] = lpv_scene.settings.as_dict()
+                _warn_unmodelled(lpv_scene.dropped)
             result = engine.update(lpv_scene, stats)
             passes = core.deferred.render(engine, lpv_scene, result, stats)
             t_w = time.perf_counter()

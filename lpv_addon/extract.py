@@ -118,7 +118,63 @@ def extract_scene(
         )
     for key, value in dropped.items():
         result.dropped[key] = result.dropped.get(key, 0) + value
+    # Light sources the LPV does not model: counted, so stats and the CLI can say so.
+    if geo.emissive:
+        result.dropped["emissive_materials_ignored"] = len(geo.emissive)
+    if world_emits(scene.world):
+        result.dropped["world_lighting_ignored"] = 1
     return result
+
+
+def world_emits(world) -> bool:
+    """Whether the world lights the scene (a non-black Background with strength > 0 on the
+    active World Output's Surface, or a non-black world colour without nodes). LPV GI models
+    lamps only; Cycles counts world light in its Diffuse Direct and Indirect passes."""
+    if world is None:
+        return False
+    tree = getattr(world, "node_tree", None)
+    if tree is None:
+        return float(max(world.color[:3])) > 0
+    outputs = [n for n in tree.nodes if n.bl_idname == "ShaderNodeOutputWorld"]
+    output = next((n for n in outputs if n.is_active_output), outputs[0] if outputs else None)
+    if output is None:
+        return False
+    source = _link_source(output.inputs["Surface"])
+    if source is None:
+        return False
+    node = source[0]
+    if node.bl_idname != "ShaderNodeBackground":
+        return not node.mute  # a sky texture mix etc.: assume it emits
+    strength = node.inputs["Strength"]
+    colour = node.inputs["Color"]
+    if strength.is_linked or colour.is_linked:
+        return True
+    return float(strength.default_value) > 0 and float(max(colour.default_value[:3])) > 0
+
+
+def material_emits(mat) -> bool:
+    """Whether a material's surface shader emits (Emission node, or a Principled BSDF with
+    emission strength > 0 and a non-black emission colour)."""
+    tree = getattr(mat, "node_tree", None)
+    if tree is None:
+        return False
+    for node in tree.nodes:
+        if node.mute:
+            continue
+        if node.bl_idname == "ShaderNodeEmission":
+            if any(o.is_linked for o in node.outputs):  # feeds the shader tree
+                strength = node.inputs["Strength"]
+                if strength.is_linked or float(strength.default_value) > 0:
+                    return True
+        elif node.bl_idname == "ShaderNodeBsdfPrincipled":
+            strength = node.inputs.get("Emission Strength")
+            colour = node.inputs.get("Emission Color")
+            if strength is None or colour is None:
+                continue
+            if (strength.is_linked or float(strength.default_value) > 0) and (
+                    colour.is_linked or float(max(colour.default_value[:3])) > 0):
+                return True
+    return False
 
 
 def _visible(inst, ob, render_visibility: bool) -> bool:
@@ -150,6 +206,7 @@ class _GeometryCollector:
         self.cache: dict[int, tuple] = {}
         self.chunks: list[tuple] = []
         self.materials: list = []
+        self.emissive: list = []  # names of materials that emit light (not modelled)
         self._material_ids: dict = {}
         self._image_means: dict = {}
         self.object_names: list[str] = []
@@ -206,6 +263,8 @@ class _GeometryCollector:
             else:
                 m = core.scene.Material(mat.name, material_albedo(mat, self._image_means))
                 _apply_bleed(m, mat)
+                if material_emits(mat):
+                    self.emissive.append(mat.name)
             mid = self._material_ids[key] = len(self.materials)
             self.materials.append(m)
         return mid

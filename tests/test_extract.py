@@ -424,3 +424,27 @@ def test_settings_from_scene_and_overrides(lpv_props):
     assert s.settings.cascades == 3 and s.settings.iterations == 12
     with pytest.raises(ValueError, match="unknown GI setting 'nope'"):
         run(settings_overrides={"nope": 1})
+
+
+def test_world_light_and_emissive_materials_are_reported_as_not_modelled():
+    """LPV GI models lamps only: a lighting world and emissive materials are counted in
+    Scene.dropped (stats.json) rather than silently missing."""
+    ob = cube()
+    bpy.context.scene.world = None
+    assert "world_lighting_ignored" not in run().dropped
+    world = bpy.data.worlds.new("W")
+    if world.node_tree is None:  # Blender < 5: node trees are opt-in
+        world.use_nodes = True
+    bpy.context.scene.world = world
+    bg = next(n for n in world.node_tree.nodes if n.bl_idname == "ShaderNodeBackground")
+    bg.inputs["Strength"].default_value = 0.0
+    assert "world_lighting_ignored" not in run().dropped
+    bg.inputs["Strength"].default_value = 1.0
+    bg.inputs["Color"].default_value = (0.2, 0.3, 0.4, 1.0)
+    assert run().dropped["world_lighting_ignored"] == 1
+    glow, p = material("Glow")
+    ob.data.materials.append(glow)
+    assert "emissive_materials_ignored" not in run().dropped
+    p.inputs["Emission Strength"].default_value = 5.0
+    p.inputs["Emission Color"].default_value = (1.0, 0.5, 0.2, 1.0)
+    assert run().dropped["emissive_materials_ignored"] == 1
