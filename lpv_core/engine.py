@@ -82,6 +82,7 @@ class Engine:
         self._focus_cache = None  # (geometry + camera key, visible points)
         self._last_chain = None  # the cascades of the last update (placement hysteresis)
         self._cache_base = self._cache_chain = None  # the cache's key without inner cascades
+        self._refl_key = None  # reflectance digest the cached grids were made with
 
     @property
     def raster(self):
@@ -213,6 +214,13 @@ class Engine:
         if key != self._cache_key:
             self._cache_key, self._cache = key, {}
             self._cache_base, self._cache_chain = base, chain
+            self._refl_key = None
+        with Timer(stats, "change_tracking"):
+            refl = reflectance_key(scene)
+        # GI reflectance (albedo x bleed) only changes what the lights' RSMs reflect: a light
+        # is recomputed when its re-rendered RSM differs, i.e. when it sees a changed material.
+        refl_changed = self._refl_key is not None and refl != self._refl_key
+        self._refl_key = refl
         if not active:
             if not scene.lights:
                 stats.skip("lpv", "scene", "no lights")
@@ -227,8 +235,8 @@ class Engine:
         per_light, vpl_sample = {}, {}
         vpl_count = 0
         for light in active:
-            cached = self._cached(light, stats)
-            if cached is not None:
+            cached = self._cached(light, stats, report=not refl_changed)
+            if cached is not None and not refl_changed:
                 per_light[light.name], vpl_sample[light.name] = cached
                 continue
             with Timer(stats, "planner"):
@@ -242,13 +250,21 @@ class Engine:
             else:
                 planner.record(reach[:-1], stats, "injection")
                 rsm, vpl_sample[light.name] = self._rsm(light, (lo, hi), settings, stats)
+                digest = rsm_key(rsm)
+                entry = self._cache.get(light.name)
+                if cached is not None and entry is not None and entry[3] == digest:
+                    stats.skip("injection", f"light '{light.name}'",
+                               "materials changed, but none its RSM sees: grids reused")
+                    per_light[light.name], vpl_sample[light.name] = cached
+                    continue
                 vpl_count += rsm.count
                 totals = run.propagate(rsm.position, rsm.normal, rsm.flux,
                                        [d.keep for d in reach])
                 if settings.bounces > 1:
                     totals = self._more_bounces(scene, run, totals)
             per_light[light.name] = totals
-            self._cache[light.name] = (light_key(light), totals, vpl_sample[light.name])
+            self._cache[light.name] = (light_key(light), totals, vpl_sample[light.name],
+                                       digest if reach[-1].keep else None)
         return self._result(chain, per_light, vpl_sample, active, settings.intensity,
                             visibilities, stats, vpl_count, run.iterations, t0)
 
@@ -365,12 +381,14 @@ class Engine:
             stats.skip("geometry_volume", f"grid {grid.cell_size:.4g} m", "unchanged: reused")
         return self._cache[key]
 
-    def _cached(self, light, stats: Stats):
-        """(grids per cascade, VPL sample) of ``light`` if nothing it depends on changed."""
+    def _cached(self, light, stats: Stats, report: bool = True):
+        """(grids per cascade, VPL sample) of ``light`` if nothing it depends on changed
+        (materials aside: see update)."""
         entry = self._cache.get(light.name)
         if entry is None or entry[0] != light_key(light):
             return None
-        stats.skip("rsm", f"light '{light.name}'",
+        if report:
+            stats.skip("rsm", f"light '{light.name}'",
                    "unchanged since the last update: its propagated grids are reused")
         return entry[1], entry[2]
 
@@ -471,6 +489,24 @@ def geometry_key(scene: Scene) -> str:
     return h.hexdigest()
 
 
+def reflectance_key(scene: Scene) -> str:
+    """Digest of the per-triangle GI reflectance (albedo x bleed colour and intensity)."""
+    import hashlib
+
+    refl = np.ascontiguousarray(scene.reflectance_per_triangle())
+    return hashlib.blake2b(refl.tobytes(), digest_size=16).hexdigest()
+
+
+def rsm_key(rsm) -> str:
+    """Digest of an RSM's VPLs: equal digests inject the same light."""
+    import hashlib
+
+    h = hashlib.blake2b(digest_size=16)
+    for arr in (rsm.position, rsm.normal, rsm.flux):
+        h.update(np.ascontiguousarray(arr).tobytes())
+    return h.hexdigest()
+
+
 def scene_key(scene: Scene, chain, geo: str | None = None) -> str:
     """Digest of everything a light's propagated grid depends on besides the light itself:
     geometry, GI reflectance, flags, areas, grid placement and the settings (not the global
@@ -479,8 +515,9 @@ def scene_key(scene: Scene, chain, geo: str | None = None) -> str:
 
     h = hashlib.blake2b(digest_size=16)
     h.update((geo or geometry_key(scene)).encode())  # positions and flags
-    for arr in (scene.normals, scene.reflectance_per_triangle()):
-        h.update(np.ascontiguousarray(arr).tobytes())
+    h.update(np.ascontiguousarray(scene.normals).tobytes())
+    if scene.settings.bounces > 1:  # later bounces reflect off every surface
+        h.update(reflectance_key(scene).encode())
     for area in scene.areas:
         h.update(repr((area.type, np.asarray(area.matrix).tobytes(), area.falloff,
                        area.intensity)).encode())

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from lpv_core import deferred, demo, engine, grid, injection, lookup, propagation, sh
-from lpv_core.scene import GISettings, make_scene
+from lpv_core.scene import GISettings, Light, make_scene
 
 
 def _sphere_dirs(n=200_000, seed=1):
@@ -386,3 +386,43 @@ def test_cascade_shift_moves_content_by_whole_cells():
     np.testing.assert_array_equal(s[0:3, :, 2:4], v[1:4, :, 0:2])
     assert not s[3].any() and not s[:, :, 0:2].any()
     assert not cascades.shift(v, (4, 0, 0)).any()
+
+
+def test_material_change_recomputes_only_the_lights_that_see_it():
+    """Issue 6: a GI colour (bleed) change re-injects the lights whose RSM sees that material;
+    the others keep their grids (their re-rendered RSM is identical)."""
+    sc = demo.cornell_box("NONE", (16, 16), GISettings(grid_resolution=8, rsm_resolution=64,
+                                                       direction_groups=1))
+    sc.lights = [
+        Light("Floor", "SPOT", demo.light_matrix(np.array([-0.5, -0.6, 1.9]), (0, 0, -1)),
+              power=100.0, spot_size=np.radians(20), spot_blend=0.0),
+        Light("Red", "SPOT", demo.light_matrix(np.array([0.0, -0.3, 1.0]), (-1, 0, 0)),
+              power=100.0, spot_size=np.radians(30), spot_blend=0.0),
+    ]
+    eng = engine.Engine()
+    first = eng.update(sc)
+
+    def recomputed(stats):
+        reused = {s["what"] for s in stats.skipped
+                  if s["stage"] in ("rsm", "injection") and "reused" in s["reason"]}
+        return {name for name in ("Floor", "Red") if f"light '{name}'" not in reused}
+
+    red = next(m for m in sc.materials if m.name == "red")
+    red.bleed_color = np.array([0.2, 0.2, 0.9], np.float32)  # only the "Red" light sees it
+    stats = engine.Stats()
+    second = eng.update(sc, stats)
+    assert recomputed(stats) == {"Red"}
+    np.testing.assert_array_equal(second.per_light["Floor"], first.per_light["Floor"])
+    assert not np.array_equal(second.per_light["Red"], first.per_light["Red"])
+    fresh = engine.Engine().update(sc)
+    for name in ("Floor", "Red"):
+        np.testing.assert_allclose(second.per_light[name], fresh.per_light[name], rtol=1e-5,
+                                   atol=1e-8)
+    white = next(m for m in sc.materials if m.name == "white")
+    white.bleed_intensity = 0.5  # the floor: only the "Floor" light sees it
+    stats = engine.Stats()
+    eng.update(sc, stats)
+    assert recomputed(stats) == {"Floor"}
+    stats = engine.Stats()
+    eng.update(sc, stats)  # nothing changed: nothing recomputed, no RSM rendered
+    assert recomputed(stats) == set() and "rsm" not in stats.ms
