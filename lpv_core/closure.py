@@ -46,6 +46,29 @@ def kappa(r: np.ndarray) -> np.ndarray:
     return r * (3.0 - r * r) / (1.0 - r * r)
 
 
+def emission_density(r: np.ndarray, cosines: np.ndarray) -> np.ndarray:
+    """Unnormalised angular density of light just emitted by diffuse surfaces, for mean
+    cosine r (broadcast against ``cosines`` = <d, w>).
+
+    A VPL emits max(0, cos)/pi (its injected SH is that lobe, mean cosine 2/3); the vMF reading
+    of the same moments sends 4 % of it backwards through its own surface. For the first step
+    out of the injected grid we read cos^n with n = (2r - 1) / (1 - r) (mean cosine
+    (n + 1) / (n + 2) = r: n = 1 for one emitter), and below r = 1/2 (emitters facing apart
+    in one cell) the mix (1 - 2r) isotropic + 2r uniform hemisphere, whose mean cosine is r.
+    Neither emits behind the mean direction once r >= 1/2."""
+    r = np.asarray(r)
+    c = np.asarray(cosines)
+    up = c > 0
+    rr = np.clip(r, 0.5 + 1e-6, EMISSION_MEAN_COSINE)
+    n = (2.0 * rr - 1.0) / (1.0 - rr)
+    with np.errstate(divide="ignore"):
+        powered = np.where(up, np.exp(n * np.log(np.where(up, c, 1.0))), 0.0)
+    return np.where(r > 0.5, powered, (1.0 - 2.0 * r) + 4.0 * r * up)
+
+
+EMISSION_MEAN_COSINE = 2.0 / 3.0  # a single diffuse emitter (cos lobe); the cap as in transport
+
+
 def _azimuthal_mean(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Mean over phi of max(0, a cos(phi) + b) for a >= 0 (closed form)."""
     with np.errstate(divide="ignore", invalid="ignore"):

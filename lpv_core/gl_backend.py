@@ -437,8 +437,10 @@ def _m1_sources() -> tuple[str, str]:
     n_off = len(propagation.OFFSETS)
     lines = []
     for j, w in enumerate(dirs):
-        lines.append(f"            b = exp(k * dot(d, vec3({_lit(w[0])}, {_lit(w[1])}, "
-                     f"{_lit(w[2])})));")
+        lines.append(f"            cw = dot(d, vec3({_lit(w[0])}, {_lit(w[1])}, {_lit(w[2])}));")
+        lines.append("            b = emission != 0u ? (re > 0.5 ? (cw > 0.0 ? "
+                     "exp2(ne * log2(cw)) : 0.0) : (1.0 - 2.0 * re) + (cw > 0.0 ? 4.0 * re : "
+                     "0.0)) : exp(k * cw);")
         lines.append("            total += b;")
         for k in range(n_off):
             if np.any(adv[j, k] != 0):
@@ -446,9 +448,11 @@ def _m1_sources() -> tuple[str, str]:
                 lines.append(f"            a[{k}] += b * vec4({vals});")
     arrivals = _HEADER + _closure_consts() + f"""
 const float R_MAX = {_lit(r_max)};
+const float EMISSION_R_MAX = {_lit(closure.EMISSION_MEAN_COSINE)};
 layout(std430, binding = 0) readonly buffer Cur {{ vec4 cur[]; }};
 layout(std430, binding = 1) writeonly buffer Arr {{ vec4 arr[]; }};  // [(off x cells + c) x 3 + ch]
 uniform uint count;  // cells
+uniform uint emission;  // 1: read as just-emitted light (closure.emission_density)
 """ + _MOMENTS_FN + """
 void main() {
     uint c = base + gl_GlobalInvocationID.x;
@@ -463,7 +467,10 @@ void main() {
         if (held > 0.0) {  // empty cells send nothing
             float rc = min(r, R_MAX);
             float k = rc * (3.0 - rc * rc) / (1.0 - rc * rc);  // closure.kappa
-            float b, total = 0.0;
+            float re = r;  // closure.emission_density: cos^ne above 1/2, else iso + hemisphere
+            float rr = clamp(r, 0.5 + 1e-6, EMISSION_R_MAX);
+            float ne = (2.0 * rr - 1.0) / (1.0 - rr);
+            float b, cw, total = 0.0;
 BUNDLES
             scale = held / total;
         }
@@ -746,12 +753,15 @@ class GLBackend:
         self._run(self._program("prepare", reprojection), cells, [cur.buffer, scale, partial])
         return scale, self._read_flux(partial, groups)
 
-    def _m1_into(self, cur: GLGrid, nxt: GLGrid, acc: GLGrid | None, vis) -> np.ndarray:
+    def _m1_into(self, cur: GLGrid, nxt: GLGrid, acc: GLGrid | None, vis,
+                 emission: bool = False) -> np.ndarray:
         """One propagation.step_m1 from ``cur`` into ``nxt`` (acc += nxt); moved flux."""
         cells = cur.cells
         groups = -(-cells // LOCAL)
         arr = self._buffer("m1_arrivals", cells * len(propagation.OFFSETS) * 48)
-        self._run(self._program("m1_arrivals"), cells, [cur.buffer, arr])
+        arrivals = self._program("m1_arrivals")
+        arrivals["emission"].value = int(bool(emission))
+        self._run(arrivals, cells, [cur.buffer, arr])
         partial = self._buffer("partial_b", groups * 12)
         prog = self._program("m1_gather")
         prog["R"].value = cur.resolution
@@ -763,7 +773,7 @@ class GLBackend:
         return self._read_flux(partial, groups)
 
     def step(self, values, visibility=None, reprojection: str = "kd10",
-             angular: str = "sh") -> GLGrid:
+             angular: str = "sh", emission: bool = False) -> GLGrid:
         """``propagation.step`` on the GPU: the newly arrived intensity as a GLGrid."""
         if angular not in ("sh", "m1"):
             return self.upload(self._numpy_step(values, visibility, reprojection, angular))
@@ -775,7 +785,7 @@ class GLBackend:
             vis = self._visibility(visibility, r)
             out = GLGrid(self.ctx.buffer(reserve=cur.nbytes), r)
             if angular == "m1":
-                self._m1_into(cur, out, None, vis)
+                self._m1_into(cur, out, None, vis, emission)
             else:
                 scale_a, _ = self._prepare_scale(cur, reprojection, "scale_a")
                 scale_b = self._buffer("scale_b", cur.cells * 12)
@@ -837,7 +847,7 @@ class GLBackend:
                 nxt = ping[k % 2]
                 step_vis = vis if (done > 0 or occlude_first_step) else None
                 if angular == "m1":
-                    moved = self._m1_into(cur, nxt, acc, step_vis)
+                    moved = self._m1_into(cur, nxt, acc, step_vis, emission=done == 0)
                 else:
                     moved = self._step_into(cur, scale_cur, nxt, scale_nxt, acc, step_vis,
                                             reprojection)
@@ -1000,9 +1010,9 @@ def inject(grid: Grid, positions: np.ndarray, normals: np.ndarray, flux: np.ndar
 
 
 def step(values: np.ndarray, visibility: np.ndarray | None = None,
-         reprojection: str = "kd10", angular: str = "sh") -> np.ndarray:
+         reprojection: str = "kd10", angular: str = "sh", emission: bool = False) -> np.ndarray:
     """``propagation.step`` on the GPU."""
-    return _read_release(backend().step(values, visibility, reprojection, angular))
+    return _read_release(backend().step(values, visibility, reprojection, angular, emission))
 
 
 def propagate(injected: np.ndarray, iterations: int, min_fraction: float = 1e-3,

@@ -137,10 +137,13 @@ def _m1_tables(q: int = M1_DIRECTIONS):
     return _M1[q]
 
 
-def step_m1(values: np.ndarray, visibility: np.ndarray | None = None) -> np.ndarray:
+def step_m1(values: np.ndarray, visibility: np.ndarray | None = None,
+            emission: bool = False) -> np.ndarray:
     """One step with the maximum-entropy reading: the cell's lobe (closure.py) is split into
     bundles along fixed directions, each advected one cell length semi-Lagrangian, and the
     arrivals summed as SH moments. Flux is conserved exactly (weights sum to one).
+    ``emission``: the grid holds light just emitted by diffuse surfaces (the injected grid),
+    read with closure.emission_density instead of the vMF.
 
     Only the box of cells holding light is read; arrivals are computed offset-major
     ((27 x 4, cells), one matmul) so each neighbour's share is one contiguous block."""
@@ -156,9 +159,13 @@ def step_m1(values: np.ndarray, visibility: np.ndarray | None = None) -> np.ndar
                                dtype=np.float32)
     shape = sub.shape[:4]
     held, mean_cos, d = closure.moments(sub.reshape(-1, 4))
-    k = closure.kappa(np.minimum(mean_cos, r_max)).astype(np.float32)
-    # kappa <= kappa(2/3) ~ 3.1, so exp(kappa cos) cannot overflow.
-    bundles = np.exp(dirs @ (d * k[:, None]).T)  # (q, cells): empty cells get weight 0 below
+    if emission:  # light just emitted by diffuse surfaces: no backward tail
+        bundles = closure.emission_density(mean_cos[None, :], dirs @ d.T).astype(np.float32)
+        bundles = np.where(bundles.sum(axis=0) > 0, bundles, np.float32(1.0))
+    else:
+        k = closure.kappa(np.minimum(mean_cos, r_max)).astype(np.float32)
+        # kappa <= kappa(2/3) ~ 3.1, so exp(kappa cos) cannot overflow.
+        bundles = np.exp(dirs @ (d * k[:, None]).T)  # (q, cells): empty ones get weight 0
     bundles *= (held / bundles.sum(axis=0)).astype(np.float32)[None, :]
     arr = (_m1_adv_t() @ bundles).reshape(len(OFFSETS), 4, *shape)
     offvis = _offset_visibilities(visibility)
@@ -230,7 +237,7 @@ def _offset_visibility(visibility: np.ndarray, off) -> np.ndarray:
 
 
 def step(values: np.ndarray, visibility: np.ndarray | None = None,
-         reprojection: str = "kd10", angular: str = "sh") -> np.ndarray:
+         reprojection: str = "kd10", angular: str = "sh", emission: bool = False) -> np.ndarray:
     """One propagation step of an (R, R, R, 3, 4) grid; returns the newly arrived intensity.
 
     ``visibility`` (6, R, R, R) optionally scales what each cell sends towards each axis
@@ -239,7 +246,7 @@ def step(values: np.ndarray, visibility: np.ndarray | None = None,
     (step_m1; ``reprojection`` unused).
     """
     if angular == "m1":
-        return step_m1(values, visibility)
+        return step_m1(values, visibility, emission)
     r = values.shape[0]
     src = values.reshape(-1, 4)
     if angular == "sh":
@@ -306,7 +313,7 @@ def propagate(
             early = True
             break
         vis = visibility if (done > 0 or occlude_first_step) else None
-        cur = step(cur, vis, reprojection, angular)
+        cur = step(cur, vis, reprojection, angular, emission=done == 0)
         acc += cur
         done += 1
         fraction = float(flux(cur).sum()) / total0
@@ -334,7 +341,7 @@ def _propagate_capturing(injected, iterations, min_fraction, visibility, reproje
     early = total0 <= 0
     for _ in range(0 if early else max(int(iterations), 0)):
         vis = vis_pad if (done > 0 or occlude_first_step) else None
-        cur = step(cur, vis, reprojection, angular)
+        cur = step(cur, vis, reprojection, angular, emission=done == 0)
         outflow[shell] += cur[shell]
         cur[shell] = 0.0
         acc += cur[1:-1, 1:-1, 1:-1]

@@ -114,6 +114,21 @@ def test_step_agrees(gl, angular, reprojection, occluded, r):
     _agree(got, ref, f"step {r}^3 {angular}/{reprojection} vis={occluded}")
 
 
+@pytest.mark.parametrize("occluded", [False, True])
+def test_emission_step_agrees(gl, occluded):
+    """The first step's reading of just-emitted light (closure.emission_density), m1."""
+    r = 9
+    rng = np.random.default_rng(3)
+    values = rng.normal(size=(r, r, r, 3, 4)).astype(np.float32)
+    values[..., 0] = np.abs(values[..., 0]) * 2.0
+    values[2, 2, 2] = 0.0
+    vis = rng.uniform(0.0, 1.0, (6, r, r, r)).astype(np.float32) if occluded else None
+    ref = propagation.step(values, vis, angular="m1", emission=True)
+    got = gl.step(values, vis, angular="m1", emission=True)
+    _agree(got, ref, f"emission step vis={occluded}")
+    assert not np.allclose(ref, propagation.step(values, vis, angular="m1"))  # it differs
+
+
 def test_step_never_gains_energy(gl):
     rng = np.random.default_rng(7)
     values = rng.normal(size=(6, 6, 6, 3, 4)).astype(np.float32)

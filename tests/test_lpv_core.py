@@ -426,3 +426,20 @@ def test_material_change_recomputes_only_the_lights_that_see_it():
     stats = engine.Stats()
     eng.update(sc, stats)  # nothing changed: nothing recomputed, no RSM rendered
     assert recomputed(stats) == set() and "rsm" not in stats.ms
+
+
+def test_first_step_sends_nothing_behind_a_diffuse_emitter():
+    """A VPL emits max(0, cos)/pi: the first step out of the injected grid (emission reading)
+    sends nothing into the half-space behind it, while the vMF reading of the same moments
+    would (about 4 % of the flux); later steps use the vMF."""
+    g = grid.Grid((0.0, 0.0, 0.0), 1.0, 9)
+    n = np.array([[0.0, 0.0, 1.0]])
+    values = injection.inject(g, np.array([[4.5, 4.5, 4.0]]), n, np.ones((1, 3)))
+    assert values[:, :, 4].any() and not values[:, :, :4].any()  # in the z = 4 layer only
+    emitted = propagation.step(values, angular="m1", emission=True)
+    vmf = propagation.step(values, angular="m1")
+    behind = propagation.flux(emitted[:, :, :4]).sum() / propagation.flux(emitted).sum()
+    vmf_behind = propagation.flux(vmf[:, :, :4]).sum() / propagation.flux(vmf).sum()
+    print(f"\nfirst step, flux sent behind the emitter: {behind:.2e} (vMF reading {vmf_behind:.3f})")
+    assert behind == 0.0 and vmf_behind > 0.01
+    np.testing.assert_allclose(propagation.flux(emitted), propagation.flux(values), rtol=1e-5)

@@ -99,6 +99,14 @@ def test_indirect_relative_rmse_on_cornell_box_at_most_half(pair):
     assert rmse <= 0.5
 
 
+def test_point_lit_room_indirect_relative_rmse_at_most_a_quarter(pair):
+    """Issue 3: a room lit by a point light, indirect relative RMSE <= 0.25 vs Cycles."""
+    ours, ref = pair("point_room")
+    rmse, ratio = _indirect_error(ours, ref)
+    print(f"\npoint_room indirect: relative RMSE {rmse:.3f} (target 0.25), mean ratio {ratio:.3f}")
+    assert rmse <= 0.25
+
+
 def test_multiple_bounces_match_cycles_with_four_diffuse_bounces(tmp_path):
     """Issue 3: bounces = 4 against Cycles with four diffuse bounces, relative RMSE <= 0.3;
     and one bounce against the same reference is clearly worse (the bounces carry light)."""
