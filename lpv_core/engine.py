@@ -235,38 +235,43 @@ class Engine:
         per_light, vpl_sample = {}, {}
         vpl_count = 0
         for light in active:
-            cached = self._cached(light, stats, report=not refl_changed)
-            if cached is not None and not refl_changed:
-                per_light[light.name], vpl_sample[light.name] = cached
-                continue
-            with Timer(stats, "planner"):
-                reach = [planner.light_reach(light, g, scene, planner.cascade_label(c, g))
-                         for c, g in enumerate(chain)]
-            planner.record(reach[-1], stats, "rsm")
-            if not reach[-1].keep:  # reaches no caster at all: no RSM either
-                totals = [g.zeros() for g in chain]
-                vpl_sample[light.name] = (np.zeros((0, 3), np.float32),
-                                          np.zeros((0, 3), np.float32))
-            else:
-                planner.record(reach[:-1], stats, "injection")
-                rsm, vpl_sample[light.name] = self._rsm(light, (lo, hi), settings, stats)
-                digest = rsm_key(rsm)
-                entry = self._cache.get(light.name)
-                if cached is not None and entry is not None and entry[3] == digest:
-                    stats.skip("injection", f"light '{light.name}'",
-                               "materials changed, but none its RSM sees: grids reused")
-                    per_light[light.name], vpl_sample[light.name] = cached
-                    continue
-                vpl_count += rsm.count
-                totals = run.propagate(rsm.position, rsm.normal, rsm.flux,
-                                       [d.keep for d in reach])
-                if settings.bounces > 1:
-                    totals = self._more_bounces(scene, run, totals)
-            per_light[light.name] = totals
-            self._cache[light.name] = (light_key(light), totals, vpl_sample[light.name],
-                                       digest if reach[-1].keep else None)
+            grids, sample, count = self._light(scene, light, chain, run, (lo, hi), refl_changed,
+                                               stats)
+            per_light[light.name], vpl_sample[light.name] = grids, sample
+            vpl_count += count
         return self._result(chain, per_light, vpl_sample, active, settings.intensity,
                             visibilities, stats, vpl_count, run.iterations, t0)
+
+    def _light(self, scene: Scene, light, chain: list, run: _ChainRun, bounds,
+               refl_changed: bool, stats: Stats):
+        """(grids per cascade, VPL sample, VPLs injected) of one light: cached when nothing it
+        depends on changed; after a material change, cached if its re-rendered RSM is the
+        same; zeros without an RSM if the planner finds it reaches no caster."""
+        cached = self._cached(light, stats, report=not refl_changed)
+        if cached is not None and not refl_changed:
+            return cached[0], cached[1], 0
+        with Timer(stats, "planner"):
+            reach = [planner.light_reach(light, g, scene, planner.cascade_label(c, g))
+                     for c, g in enumerate(chain)]
+        planner.record(reach[-1], stats, "rsm")
+        if not reach[-1].keep:  # reaches no caster at all: no RSM either
+            totals = [g.zeros() for g in chain]
+            sample = (np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32))
+            self._cache[light.name] = (light_key(light), totals, sample, None)
+            return totals, sample, 0
+        planner.record(reach[:-1], stats, "injection")
+        rsm, sample = self._rsm(light, bounds, scene.settings, stats)
+        digest = rsm_key(rsm)
+        entry = self._cache.get(light.name)
+        if cached is not None and entry is not None and entry[3] == digest:
+            stats.skip("injection", f"light '{light.name}'",
+                       "materials changed, but none its RSM sees: grids reused")
+            return cached[0], cached[1], 0
+        totals = run.propagate(rsm.position, rsm.normal, rsm.flux, [d.keep for d in reach])
+        if scene.settings.bounces > 1:
+            totals = self._more_bounces(scene, run, totals)
+        self._cache[light.name] = (light_key(light), totals, sample, digest)
+        return totals, sample, rsm.count
 
     @staticmethod
     def _result(chain, per_light, vpl_sample, active, intensity, visibilities, stats, vpl_count,
