@@ -62,8 +62,8 @@ def render(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats | None = N
             for light in scene.lights:
                 if light.power <= 0:
                     continue
-                shadow = direct.render_shadow_map(engine.raster, light, (lo, hi),
-                                                  scene.settings.shadow_resolution)
+                shadow = engine.shadow_map(scene, light, (lo, hi),
+                                           scene.settings.shadow_resolution, stats)
                 e_dir += direct.irradiance(light, pos, nrm, shadow)
             diff_dir[mask] = e_dir / np.pi
         if lpv.values is not None:

@@ -83,6 +83,7 @@ class Engine:
         self._last_chain = None  # the cascades of the last update (placement hysteresis)
         self._cache_base = self._cache_chain = None  # the cache's key without inner cascades
         self._refl_key = None  # reflectance digest the cached grids were made with
+        self._shadows: dict = {}  # direct-light shadow maps of the current geometry
 
     @property
     def raster(self):
@@ -154,6 +155,25 @@ class Engine:
                 stats.skip("lpv", f"{outside} triangles ({share:.2%} of the surface area)",
                            "far outliers: outside the LPV, they get no GI")
         return lo, hi
+
+    def shadow_map(self, scene: Scene, light, bounds, resolution: int,
+                   stats: Stats | None = None):
+        """direct.render_shadow_map, cached per geometry, light and resolution: frames of an
+        animation whose geometry and lights hold still (a camera move) reuse them."""
+        from . import direct
+
+        geo = self._bounds[0] if self._bounds is not None else geometry_key(scene)
+        key = (geo, light_key(light), int(resolution),
+               np.asarray(bounds, np.float64).tobytes())
+        if self._shadows.get("geo") != geo:
+            self._shadows = {"geo": geo}
+        shadow = self._shadows.get(key)
+        if shadow is None:
+            shadow = self._shadows[key] = direct.render_shadow_map(self.raster, light, bounds,
+                                                                   resolution)
+        elif stats is not None:
+            stats.skip("direct", f"shadow map of '{light.name}'", "unchanged: reused")
+        return shadow
 
     def update(self, scene: Scene, stats: Stats | None = None,
                reproject: bool = False) -> LPVResult:
@@ -373,8 +393,9 @@ class Engine:
         return rsm, (rsm.position[keep].astype(np.float32), rsm.flux[keep].astype(np.float32))
 
     def clear_cache(self) -> None:
-        """Forget cached grids: the next update recomputes everything."""
+        """Forget cached grids and shadow maps: the next update recomputes everything."""
         self._cache_key, self._cache = None, {}
+        self._shadows = {}
         self._cache_base = self._cache_chain = None
 
     def _visibility(self, scene: Scene, grid: Grid, stats: Stats | None):

@@ -443,3 +443,21 @@ def test_first_step_sends_nothing_behind_a_diffuse_emitter():
     print(f"\nfirst step, flux sent behind the emitter: {behind:.2e} (vMF reading {vmf_behind:.3f})")
     assert behind == 0.0 and vmf_behind > 0.01
     np.testing.assert_allclose(propagation.flux(emitted), propagation.flux(values), rtol=1e-5)
+
+
+def test_shadow_maps_are_reused_until_geometry_or_light_changes():
+    sc = demo.cornell_box("SPOT", (24, 24), GISettings(grid_resolution=8, rsm_resolution=64))
+    eng = engine.Engine()
+    first = deferred.render(eng, sc, eng.update(sc))
+    stats = engine.Stats()
+    second = deferred.render(eng, sc, eng.update(sc, stats), stats)
+    assert any(s["stage"] == "direct" and "reused" in s["reason"] for s in stats.skipped)
+    np.testing.assert_array_equal(first["Diffuse Direct"], second["Diffuse Direct"])
+    sc.lights[0].matrix = sc.lights[0].matrix.copy()
+    sc.lights[0].matrix[0, 3] += 0.3  # the light moved: its shadow map is rendered again
+    stats = engine.Stats()
+    moved = deferred.render(eng, sc, eng.update(sc, stats), stats)
+    assert not any(s["stage"] == "direct" for s in stats.skipped)
+    fresh = engine.Engine()
+    np.testing.assert_array_equal(moved["Diffuse Direct"],
+                                  deferred.render(fresh, sc, fresh.update(sc))["Diffuse Direct"])
