@@ -28,10 +28,12 @@ class ShadowMap:
 
 def render_shadow_map(raster: Rasterizer, light: Light, bounds, resolution: int) -> ShadowMap:
     """Rasterise the light's views and keep the nearest occluder per texel."""
-    from .rsm import render_views
+    from . import lights as lights_mod
 
     views, depths = [], []
-    for view, frame in render_views(raster, light, bounds, resolution):
+    for view in lights_mod.light_views(light, bounds):
+        frame = raster.render(view.view, view.projection, resolution, resolution,
+                              ortho=view.ortho, positions_only=True)
         if view.ortho:
             vp = _transform(view.view, frame.position)
             depth = -vp[..., 2]

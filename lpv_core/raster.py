@@ -175,8 +175,11 @@ class Rasterizer:
         width: int,
         height: int,
         ortho: bool = False,
+        positions_only: bool = False,
     ) -> Frame:
-        """Rasterise from a world-to-view and projection matrix (OpenGL conventions)."""
+        """Rasterise from a world-to-view and projection matrix (OpenGL conventions).
+        ``positions_only`` reads back only the position target (shadow maps: a quarter of the
+        readback); the other fields are then read-only zeros."""
         view = np.asarray(view, np.float64)
         inv_view = np.linalg.inv(view)
         eye = inv_view[:3, 3]
@@ -201,12 +204,16 @@ class Rasterizer:
             self.program["origin"].value = (0.0, 0.0, 0.0)
             self._vao.render()
         out = []
-        for tex in fbo.color_attachments:
+        for tex in fbo.color_attachments[:1] if positions_only else fbo.color_attachments:
             a = np.frombuffer(tex.read(), np.float32).reshape(height, width, 4)
             out.append(a[::-1])  # GL's first row is the bottom
         covered = out[0][..., 3] > 0.5
         pos = out[0][..., :3].astype(np.float64) + self.origin
         pos[~covered] = np.nan
+        if positions_only:
+            zeros = np.broadcast_to(np.zeros(3, np.float32), (height, width, 3))
+            return Frame(position=pos, normal=zeros, albedo=zeros, reflectance=zeros,
+                         covered=covered, receiver=covered)
         return Frame(
             position=pos,
             normal=np.ascontiguousarray(out[1][..., :3]),
