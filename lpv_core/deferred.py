@@ -49,14 +49,13 @@ def render(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats | None = N
     diff_dir = np.zeros((h, w, 3), np.float32)
     diff_ind = np.zeros((h, w, 3), np.float32)
     if scene.triangle_count:
-        engine.upload(scene, stats)
+        lo, hi = engine.upload(scene, stats)  # the LPV box: shadow maps cover it, not outliers
         with Timer(stats, "gbuffer"):
             frame = engine.raster.render(scene.camera.view, scene.camera.projection, w, h)
         mask = frame.covered
         pos = frame.position[mask]
         nrm = frame.normal[mask].astype(np.float64)
         color[mask] = frame.albedo[mask]
-        lo, hi = engine.lpv_bounds(scene)  # shadow maps cover the LPV box, not outliers
         with Timer(stats, "direct"):
             e_dir = np.zeros((pos.shape[0], 3))
             for light in scene.lights:

@@ -7,6 +7,7 @@ milliseconds per stage and every piece of work that was left out, with the reaso
 
 from __future__ import annotations
 
+import hashlib
 import time
 from dataclasses import dataclass, field
 
@@ -129,15 +130,17 @@ class Engine:
             self._gl = GLBackend(self.raster.ctx)
         return self._gl
 
-    def upload(self, scene: Scene, stats: Stats) -> None:
+    def upload(self, scene: Scene, stats: Stats, geo: str | None = None):
         """Send the scene's triangles to the rasteriser, relative to the LPV box's centre (so a
-        far outlier does not cost the scene float32 precision)."""
-        lo, hi = self.lpv_bounds(scene, stats)
+        far outlier does not cost the scene float32 precision); returns that box (lo, hi).
+        ``geo``: the scene's geometry_key when the caller has it (saves hashing again)."""
+        lo, hi = self.lpv_bounds(scene, stats, geo)
         with Timer(stats, "upload"):
             self.raster.upload(scene.positions, scene.normals, scene.albedo_per_triangle(),
                                scene.reflectance_per_triangle(),
                                receiver=None if scene.receiver is None else scene.flag("receiver"),
                                origin=0.5 * (lo + hi))
+        return lo, hi
 
     def lpv_bounds(self, scene: Scene, stats: Stats | None = None, geo: str | None = None):
         """The box the LPV covers (cascades.fit_bounds: far outliers left out, listed in the
@@ -220,8 +223,9 @@ class Engine:
             else:
                 active.append(light)
         with Timer(stats, "change_tracking"):
-            key = scene_key(scene, chain, geo)
-            base = scene_key(scene, chain[-1:], geo)  # the same, inner cascades aside
+            content = content_key(scene, geo)
+            key = scene_key(scene, chain, content=content)
+            base = scene_key(scene, chain[-1:], content=content)  # inner cascades aside
         if key != self._cache_key and reproject and active:
             shifted = self._reprojected(chain, base, active, stats)
             if shifted is not None:
@@ -246,7 +250,7 @@ class Engine:
                 stats.skip("lpv", "scene", "no lights")
             stats.ms["lpv_update"] = (time.perf_counter() - t0) * 1000.0
             return LPVResult(grid, None, {}, stats)
-        self.upload(scene, stats)
+        self.upload(scene, stats, geo)
         backend = self.backend(settings, stats)
         iterations = settings.iterations or auto_iterations(settings.grid_resolution,
                                                             settings.angular)
@@ -361,7 +365,7 @@ class Engine:
         key = (geo, np.asarray(scene.camera.view, np.float64).tobytes(),
                np.asarray(scene.camera.projection, np.float64).tobytes())
         if self._focus_cache is None or self._focus_cache[0] != key:
-            self.upload(scene, stats)
+            self.upload(scene, stats, geo)
             with Timer(stats, "planner"):
                 w, h = scene.camera.resolution
                 scale = FOCUS_PIXELS / max(w, h, 1)
@@ -415,7 +419,7 @@ class Engine:
             return None
         if report:
             stats.skip("rsm", f"light '{light.name}'",
-                   "unchanged since the last update: its propagated grids are reused")
+                       "unchanged since the last update: its propagated grids are reused")
         return entry[1], entry[2]
 
     def _more_bounces(self, scene: Scene, run: _ChainRun, first: list) -> list:
@@ -504,53 +508,49 @@ class _ChainRun:
         return totals
 
 
+def _digest(*parts) -> str:
+    """blake2b digest (hex) of arrays (their bytes) and strings, in order."""
+    h = hashlib.blake2b(digest_size=16)
+    for part in parts:
+        h.update(part.encode() if isinstance(part, str)
+                 else np.ascontiguousarray(part).tobytes())
+    return h.hexdigest()
+
+
 def geometry_key(scene: Scene) -> str:
     """Digest of the geometry and the caster / receiver / occluder flags (planner decisions)."""
-    import hashlib
-
-    h = hashlib.blake2b(digest_size=16)
-    for arr in (scene.positions, scene.flag("caster"), scene.flag("occluder"),
-                scene.flag("receiver")):
-        h.update(np.ascontiguousarray(arr).tobytes())
-    return h.hexdigest()
+    return _digest(scene.positions, scene.flag("caster"), scene.flag("occluder"),
+                   scene.flag("receiver"))
 
 
 def reflectance_key(scene: Scene) -> str:
     """Digest of the per-triangle GI reflectance (albedo x bleed colour and intensity)."""
-    import hashlib
-
-    refl = np.ascontiguousarray(scene.reflectance_per_triangle())
-    return hashlib.blake2b(refl.tobytes(), digest_size=16).hexdigest()
+    return _digest(scene.reflectance_per_triangle())
 
 
 def rsm_key(rsm) -> str:
     """Digest of an RSM's VPLs: equal digests inject the same light."""
-    import hashlib
-
-    h = hashlib.blake2b(digest_size=16)
-    for arr in (rsm.position, rsm.normal, rsm.flux):
-        h.update(np.ascontiguousarray(arr).tobytes())
-    return h.hexdigest()
+    return _digest(rsm.position, rsm.normal, rsm.flux)
 
 
-def scene_key(scene: Scene, chain, geo: str | None = None) -> str:
-    """Digest of everything a light's propagated grid depends on besides the light itself:
-    geometry, GI reflectance, flags, areas, grid placement and the settings (not the global
-    intensity, which only re-combines)."""
-    import hashlib
-
-    h = hashlib.blake2b(digest_size=16)
-    h.update((geo or geometry_key(scene)).encode())  # positions and flags
-    h.update(np.ascontiguousarray(scene.normals).tobytes())
-    if scene.settings.bounces > 1:  # later bounces reflect off every surface
-        h.update(reflectance_key(scene).encode())
-    for area in scene.areas:
-        h.update(repr((area.type, np.asarray(area.matrix).tobytes(), area.falloff,
-                       area.intensity)).encode())
+def content_key(scene: Scene, geo: str | None = None) -> str:
+    """Digest of what every light's propagated grids depend on besides their placement:
+    geometry and flags, normals, areas, the settings (not the global intensity, which only
+    re-combines) and, with bounces > 1, the GI reflectance (later bounces reflect off every
+    surface; one bounce's reflectance is tracked per light through its RSM, Engine._light)."""
+    areas_repr = repr([(a.type, np.asarray(a.matrix).tobytes(), a.falloff, a.intensity)
+                       for a in scene.areas])
     settings = {k: v for k, v in scene.settings.as_dict().items() if k != "intensity"}
-    h.update(repr(sorted(settings.items())).encode())
-    h.update(repr([(g.origin, g.cell_size, g.resolution) for g in chain]).encode())
-    return h.hexdigest()
+    bounce = reflectance_key(scene) if scene.settings.bounces > 1 else ""
+    return _digest(geo or geometry_key(scene), scene.normals, bounce, areas_repr,
+                   repr(sorted(settings.items())))
+
+
+def scene_key(scene: Scene, chain, geo: str | None = None, content: str | None = None) -> str:
+    """Digest of everything a light's propagated grid depends on besides the light itself:
+    content_key (pass ``content`` to reuse it) and the grid placement."""
+    return _digest(content or content_key(scene, geo),
+                   repr([(g.origin, g.cell_size, g.resolution) for g in chain]))
 
 
 def light_key(light) -> tuple:
