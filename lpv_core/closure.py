@@ -21,6 +21,9 @@ import numpy as np
 
 from . import sh
 
+# Flux-weighted mean cosine of a diffuse emitter's light, int cos^2 / int cos = 2/3: the
+# injected VPL lobe, the emission reading's cos^1 and propagation's cap (propagation._m1_tables).
+LAMBERTIAN_MEAN_COSINE = 2.0 / 3.0
 MAX_MEAN_COSINE = 0.995  # kappa ~ 200: a beam narrower than any cell's solid angles
 # Net flux vector from band-1 coefficients: F = a1 * Y1 * 4 pi / 3 per axis.
 FLUX_FROM_BAND1 = sh.Y1 * 4.0 * np.pi / 3.0
@@ -59,14 +62,11 @@ def emission_density(r: np.ndarray, cosines: np.ndarray) -> np.ndarray:
     r = np.asarray(r)
     c = np.asarray(cosines)
     up = c > 0
-    rr = np.clip(r, 0.5 + 1e-6, EMISSION_MEAN_COSINE)
+    rr = np.clip(r, 0.5 + 1e-6, LAMBERTIAN_MEAN_COSINE)
     n = (2.0 * rr - 1.0) / (1.0 - rr)
     with np.errstate(divide="ignore"):
         powered = np.where(up, np.exp(n * np.log(np.where(up, c, 1.0))), 0.0)
     return np.where(r > 0.5, powered, (1.0 - 2.0 * r) + 4.0 * r * up)
-
-
-EMISSION_MEAN_COSINE = 2.0 / 3.0  # a single diffuse emitter (cos lobe); the cap as in transport
 
 
 def _azimuthal_mean(a: np.ndarray, b: np.ndarray) -> np.ndarray:

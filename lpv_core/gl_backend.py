@@ -448,7 +448,7 @@ def _m1_sources() -> tuple[str, str]:
                 lines.append(f"            a[{k}] += b * vec4({vals});")
     arrivals = _HEADER + _closure_consts() + f"""
 const float R_MAX = {_lit(r_max)};
-const float EMISSION_R_MAX = {_lit(closure.EMISSION_MEAN_COSINE)};
+const float EMISSION_R_MAX = {_lit(closure.LAMBERTIAN_MEAN_COSINE)};
 layout(std430, binding = 0) readonly buffer Cur {{ vec4 cur[]; }};
 layout(std430, binding = 1) writeonly buffer Arr {{ vec4 arr[]; }};  // [(off x cells + c) x 3 + ch]
 uniform uint count;  // cells

@@ -97,7 +97,6 @@ def quadrature_directions(q: int = 64) -> np.ndarray:
 
 
 M1_DIRECTIONS = 64
-LAMBERTIAN_MEAN_COSINE = 2.0 / 3.0  # flux-weighted mean cosine of a diffuse emitter's light
 OFFSETS = [(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)]
 
 
@@ -132,7 +131,7 @@ def _m1_tables(q: int = M1_DIRECTIONS):
                     w *= np.where(np.sign(comp) == off[axis], np.abs(comp), 0.0)
             adv[:, k, :] = w[:, None] * basis
         k_max = q / (4.0 * np.pi)
-        r_max = min(1.0 / np.tanh(k_max) - 1.0 / k_max, LAMBERTIAN_MEAN_COSINE)
+        r_max = min(1.0 / np.tanh(k_max) - 1.0 / k_max, closure.LAMBERTIAN_MEAN_COSINE)
         _M1[q] = (dirs.astype(np.float32), adv.reshape(q, -1).astype(np.float32), float(r_max))
     return _M1[q]
 
@@ -149,7 +148,6 @@ def step_m1(values: np.ndarray, visibility: np.ndarray | None = None,
     ((27 x 4, cells), one matmul) so each neighbour's share is one contiguous block."""
     r = values.shape[0]
     box = _live_box(values)
-    out = np.zeros((4, 3, r, r, r), np.float32)  # coefficient, colour, x, y, z
     if box is None:
         return np.zeros_like(values)
     dirs, _, r_max = _m1_tables()
@@ -169,25 +167,23 @@ def step_m1(values: np.ndarray, visibility: np.ndarray | None = None,
     bundles *= (held / bundles.sum(axis=0)).astype(np.float32)[None, :]
     arr = (_m1_adv_t() @ bundles).reshape(len(OFFSETS), 4, *shape)
     offvis = _offset_visibilities(visibility)
+    out = np.zeros((4, 3, r, r, r), np.float32)  # coefficient, colour, x, y, z
     for k_off, off in enumerate(OFFSETS):
         src_sl, dst_sl = [slice(None), slice(None)], [slice(None), slice(None)]
         vis_sl = []
-        empty = False
         for axis in range(3):
             lo, hi = box[axis]
             s_lo, s_hi = max(lo, -off[axis]), min(hi, r - off[axis])  # sources landing inside
             if s_hi <= s_lo:
-                empty = True
-                break
+                break  # every source of this offset lands outside the grid
             src_sl.append(slice(s_lo - lo, s_hi - lo))
             dst_sl.append(slice(s_lo + off[axis], s_hi + off[axis]))
             vis_sl.append(slice(s_lo, s_hi))
-        if empty:
-            continue
-        sent = arr[k_off][tuple(src_sl)]
-        if offvis is not None:
-            sent = sent * offvis[k_off][tuple(vis_sl)]
-        out[tuple(dst_sl)] += sent
+        else:
+            sent = arr[k_off][tuple(src_sl)]
+            if offvis is not None:
+                sent = sent * offvis[k_off][tuple(vis_sl)]
+            out[tuple(dst_sl)] += sent
     return np.ascontiguousarray(out.transpose(2, 3, 4, 1, 0)).astype(values.dtype, copy=False)
 
 
