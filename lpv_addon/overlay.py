@@ -278,7 +278,7 @@ def _draw_indirect(result, mvp: Matrix, eye4, view_dir4, weight: float,
         return
     res = _result_resources(result)
     shader = _lpv_shader()
-    angular = 1.0 if getattr(result.settings, "angular", "sh") == "m1" else 0.0
+    angular = 1.0 if getattr(result.settings, "angular", "sh") in live.core.closure.LOBE_MODELS else 0.0
     nudge = live.core.deferred.VIEWER_NUDGE_CELLS * min(lv["grid"].cell_size
                                                       for lv in res["levels"])
     for i, level in enumerate(res["levels"]):

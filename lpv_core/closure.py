@@ -24,6 +24,9 @@ from . import sh
 # Flux-weighted mean cosine of a diffuse emitter's light, int cos^2 / int cos = 2/3: the
 # injected VPL lobe, the emission reading's cos^1 and propagation's cap (propagation._m1_tables).
 LAMBERTIAN_MEAN_COSINE = 2.0 / 3.0
+# Angular models whose propagated cells are read as maximum-entropy lobes at lookup: "m1"
+# (read that way at every step) and "dom" (ordinates.py: folded into moments once, at the end).
+LOBE_MODELS = ("m1", "dom")
 MAX_MEAN_COSINE = 0.995  # kappa ~ 200: a beam narrower than any cell's solid angles
 # Net flux vector from band-1 coefficients: F = a1 * Y1 * 4 pi / 3 per axis.
 FLUX_FROM_BAND1 = sh.Y1 * 4.0 * np.pi / 3.0

@@ -667,7 +667,7 @@ def auto_iterations(resolution: int, angular: str = "sh") -> int:
     a step carries < 1e-3 of the injected flux, capped at 3 grid widths (a light path that
     crosses the grid diagonally and back).
     """
-    if angular == "m1":
+    if angular in ("m1", "dom"):
         return 3 * resolution
     return max(1, round(resolution / 4))
 

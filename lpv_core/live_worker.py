@@ -28,6 +28,7 @@ import traceback
 
 import numpy as np
 
+from . import closure
 from .scene import Area, Camera, GISettings, Light, Material, Scene
 
 # ------------------------------------------------------------------------ scene <-> npz
@@ -154,7 +155,7 @@ def save_result(path: str, result, scene: Scene) -> None:
         out[f"fine_{i}_values"] = np.asarray(values, np.float32)
         if vis is not None:
             out[f"fine_{i}_visibility"] = np.asarray(vis, np.float32)
-    if getattr(scene.settings, "angular", "sh") == "m1":
+    if getattr(scene.settings, "angular", "sh") in closure.LOBE_MODELS:
         table = _cosine_table()
         if table is not None:
             out["cosine_table"] = table

@@ -55,7 +55,7 @@ def irradiance(
     normals = np.asarray(normals, np.float64)
     coeffs = sample(grid, values, positions + normals * (offset_cells * grid.cell_size),
                     visibility)
-    if angular == "m1":
+    if angular in closure.LOBE_MODELS:
         held, r, d = closure.moments(coeffs)  # (M, 3), (M, 3), (M, 3, 3)
         t = -np.einsum("mcx,mx->mc", d, normals)
         e = held * closure.cosine_expectation(r, t) / (grid.cell_size**2)

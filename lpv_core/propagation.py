@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import closure, sh
+from . import closure, ordinates, sh
 
 FRONT_SOLID_ANGLE = 4.0 * np.arctan(np.sqrt(11.0) / 33.0)  # 0.4006696846
 SIDE_SOLID_ANGLE = 2.0 * np.arctan(3.0 * np.sqrt(11.0) / 11.0) - np.pi / 3.0  # 0.4234313544
@@ -83,7 +83,7 @@ def _shift_add(dst: np.ndarray, src: np.ndarray, axis_index: int) -> None:
     dst[tuple(lo)] += src[tuple(hi)]
 
 
-ANGULAR_MODELS = ("sh", "m1")
+ANGULAR_MODELS = ("sh", "m1", "dom")
 _M1 = {}
 
 
@@ -239,7 +239,7 @@ def step(values: np.ndarray, visibility: np.ndarray | None = None,
     ``visibility`` (6, R, R, R) optionally scales what each cell sends towards each axis
     direction (1 - blocking potential of the face it crosses). ``angular``: "sh" evaluates the
     clamped 2-band SH (KD10); "m1" reads the cell as its maximum-entropy lobe and advects it
-    (step_m1; ``reprojection`` unused).
+    (step_m1; ``reprojection`` unused). "dom" has no step on moments (see propagate).
     """
     if angular == "m1":
         return step_m1(values, visibility, emission)
@@ -253,6 +253,9 @@ def step(values: np.ndarray, visibility: np.ndarray | None = None,
         with np.errstate(divide="ignore", invalid="ignore"):
             scale = np.where(total > held, held / total, 1.0).astype(np.float32)
         face_flux *= scale[:, None]
+    elif angular == "dom":
+        raise ValueError('angular="dom" keeps flux per direction between steps: use '
+                         "propagate() or ordinates.step()")
     else:
         raise ValueError(f"angular must be one of {ANGULAR_MODELS}, not {angular!r}")
     face_flux = face_flux.reshape(r, r, r, 3, 6, 5)
@@ -295,6 +298,9 @@ def propagate(
     The first step ignores ``visibility`` unless ``occlude_first_step`` (KD10: injected light
     sits next to the surface it left, which must not block it). ``capture_outflow`` keeps what
     leaves the volume instead of dropping it (light passing on to an outer cascade)."""
+    if angular == "dom":
+        return _propagate_ordinates(injected, iterations, min_fraction, visibility,
+                                    occlude_first_step, capture_outflow)
     if capture_outflow:
         return _propagate_capturing(injected, iterations, min_fraction, visibility,
                                     reprojection, angular, occlude_first_step)
@@ -347,3 +353,43 @@ def _propagate_capturing(injected, iterations, min_fraction, visibility, reproje
             early = True
             break
     return PropagationResult(acc, done, flux(injected), fraction, early, outflow)
+
+
+
+def _propagate_ordinates(injected, iterations, min_fraction, visibility, occlude_first_step,
+                         capture_outflow) -> PropagationResult:
+    """propagate() with angular="dom" (ordinates.py): the injected lobes are unfolded once into
+    flux per direction, advected step by step, and folded back into moments once at the end.
+    With ``capture_outflow`` the grid is padded by one cell whose arrivals become ``outflow``."""
+    pad = ((1, 1),) * 3 + ((0, 0), (0, 0)) if capture_outflow else None
+    vis = visibility
+    if pad is not None and visibility is not None:
+        vis = np.pad(visibility, ((0, 0), (1, 1), (1, 1), (1, 1)), constant_values=1.0)
+    cur = ordinates.unfold(np.pad(injected, pad) if pad is not None else injected)
+    total0 = float(cur.sum(dtype=np.float64))
+    acc = np.zeros_like(cur)
+    outflow = np.zeros_like(cur) if pad is not None else None
+    offvis = _offset_visibilities(vis)
+    fraction = 1.0 if total0 > 0 else 0.0
+    done, early = 0, total0 <= 0
+    for _ in range(0 if early else max(int(iterations), 0)):
+        cur = ordinates.step(cur, offvis if (done > 0 or occlude_first_step) else None)
+        if outflow is not None:
+            for axis in range(3):  # move the arrivals in the pad shell to outflow
+                for side in (0, -1):
+                    sl = [slice(None)] * 5
+                    sl[2 + axis] = side
+                    outflow[tuple(sl)] += cur[tuple(sl)]
+                    cur[tuple(sl)] = 0.0
+        acc += cur
+        done += 1
+        fraction = float(cur.sum(dtype=np.float64)) / total0
+        if fraction < min_fraction:
+            early = True
+            break
+    values = ordinates.fold(acc)
+    if pad is not None:
+        values = values[1:-1, 1:-1, 1:-1]
+    values += injected.astype(np.float32)
+    return PropagationResult(values, done, flux(injected), fraction, early,
+                             ordinates.fold(outflow) if outflow is not None else None)

@@ -105,8 +105,10 @@ class GISettings:
     cascades: int = 1
     iterations: int = 0  # 0: automatic (engine.auto_iterations)
     reprojection: str = "kd10"  # side-face re-emission: "kd10" (paper) or "ray"
-    angular: str = "m1"  # cell read as max-entropy lobe ("m1", closure.py) or clamped SH ("sh", KD10)
-    direction_groups: int = 6  # 6: propagate VPLs of each facing apart (see engine); 1: together
+    # Transport: "dom" flux along 64 directions (ordinates.py), "m1" a max-entropy lobe per
+    # cell (closure.py), "sh" the clamped 2-band SH (KD10)
+    angular: str = "dom"
+    direction_groups: int = 1  # 6: propagate VPLs of each facing apart (see engine); 1: together
     rsm_resolution: int = 256
     occlusion: bool = True
     bounces: int = 1

@@ -127,6 +127,7 @@ def record_steps():
     chain's input (the injected grid). Yields the log dict {"steps": [...], "injected": ...}."""
     log: dict = {"steps": [], "injected": None, "_last": None}
     original = propagation.step
+    unfold, advect = propagation.ordinates.unfold, propagation.ordinates.step
 
     def wrapped(values, *args, **kwargs):
         out = original(values, *args, **kwargs)
@@ -137,11 +138,24 @@ def record_steps():
                              float(propagation.flux(out).sum())))
         return out
 
+    def unfolded(values):  # angular="dom": the injected grid is unfolded once per chain
+        if log["injected"] is None:
+            log["injected"] = np.array(values, copy=True)
+        return unfold(values)
+
+    def advected(flux, *args, **kwargs):
+        out = advect(flux, *args, **kwargs)
+        log["steps"].append((float(flux.sum(dtype=np.float64)),
+                             float(out.sum(dtype=np.float64))))
+        return out
+
     propagation.step = wrapped
+    propagation.ordinates.unfold, propagation.ordinates.step = unfolded, advected
     try:
         yield log
     finally:
         propagation.step = original
+        propagation.ordinates.unfold, propagation.ordinates.step = unfold, advect
 
 
 def _nonfinite(*arrays) -> int:
@@ -523,15 +537,21 @@ def energy_trace(resolution: int = 16, steps: int = 1000, **step_kwargs) -> dict
     noisy = rng.normal(size=g.shape).astype(np.float32)
     noisy[..., 0] = np.abs(noisy[..., 0]) + 0.1
     out = {}
+    ordinates = step_kwargs.get("angular") == "dom"  # flux per direction between steps
     for name, start in (("single VPL", single), ("random cells", noisy)):
-        cur = start
-        fluxes = [float(propagation.flux(cur).sum())]
+        cur = propagation.ordinates.unfold(start) if ordinates else start
+        fluxes = [float(propagation.flux(start).sum())]
         bad = 0
         t0 = time.perf_counter()
         for _ in range(steps):
-            nxt = propagation.step(cur, **step_kwargs)
+            if ordinates:
+                nxt = propagation.ordinates.step(cur)
+                moved = float(nxt.sum(dtype=np.float64))
+            else:
+                nxt = propagation.step(cur, **step_kwargs)
+                moved = float(propagation.flux(nxt).sum())
             bad += int((~np.isfinite(nxt)).sum())
-            fluxes.append(float(propagation.flux(nxt).sum()))
+            fluxes.append(moved)
             cur = nxt
         out[name] = {"flux": fluxes, "max_growth": growth(itertools.pairwise(fluxes)),
                      "nonfinite": bad, "time_s": time.perf_counter() - t0}
@@ -557,16 +577,23 @@ def case_energy(r: Runner) -> dict:
                    rows, x_log=False, traces=traces)
 
 
-def _propagate_storage(injected: np.ndarray, steps: int, dtype) -> np.ndarray:
-    """sum_k P^k(I0) with the grid stored in ``dtype`` between steps (compute in float32)."""
-    with np.errstate(over="ignore"):
-        cur = injected.astype(dtype)
-    acc = cur.copy()
+def _propagate_storage(injected: np.ndarray, steps: int, dtype,
+                       angular: str = "sh") -> np.ndarray:
+    """sum_k P^k(I0) with the grid stored in ``dtype`` between steps (compute in float32).
+    angular="dom": the per-direction flux is what is stored between steps."""
+    dom = angular == "dom"
+    advance = propagation.ordinates.step if dom else propagation.step
+    with np.errstate(over="ignore", invalid="ignore"):
+        cur = (propagation.ordinates.unfold(injected) if dom else injected).astype(dtype)
+    acc = np.zeros_like(cur) if dom else cur.copy()
     for _ in range(steps):
         with np.errstate(over="ignore", invalid="ignore"):
-            nxt = propagation.step(cur.astype(np.float32)).astype(dtype)
+            nxt = advance(cur.astype(np.float32)).astype(dtype)
             acc = (acc.astype(np.float32) + nxt.astype(np.float32)).astype(dtype)
         cur = nxt
+    if dom:
+        with np.errstate(over="ignore", invalid="ignore"):
+            return propagation.ordinates.fold(acc.astype(np.float32)) + injected
     return acc.astype(np.float32)
 
 
@@ -576,17 +603,18 @@ def case_float16(r: Runner) -> dict:
     p0 = 300.0
     run = r.run(_cornell(r, power=p0))
     injected = run.injected
-    steps = engine.auto_iterations(r.p["grid"])
+    angular = r.settings().angular
+    steps = engine.auto_iterations(r.p["grid"], angular)
     rows = []
     for p in r.p["f16_powers"]:
         inj = injected.astype(np.float64) * (p / p0)
         with np.errstate(over="ignore"):
             inj32 = inj.astype(np.float32)
         t0 = time.perf_counter()
-        ref = _propagate_storage(inj32, steps, np.float32)
+        ref = _propagate_storage(inj32, steps, np.float32, angular)
         t32 = time.perf_counter() - t0
         t0 = time.perf_counter()
-        half = _propagate_storage(inj32, steps, np.float16)
+        half = _propagate_storage(inj32, steps, np.float16, angular)
         t16 = time.perf_counter() - t0
         bad = int((~np.isfinite(half)).sum())
         nz = ref != 0
