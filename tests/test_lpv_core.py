@@ -199,16 +199,19 @@ def _point_source_log_errors(angular: str) -> np.ndarray:
     return np.abs(np.array(logs))
 
 
-def test_m1_point_source_matches_the_analytic_irradiance():
-    """A single VPL is the hardest case for the broad reading (its light far away is a true
-    beam, read no narrower than mean cosine 2/3): within 30 % on average."""
-    logs = _point_source_log_errors("m1")
-    print(f"\nm1 point source vs analytic: mean |log ratio| {logs.mean():.3f}, max "
+@pytest.mark.parametrize("angular, mean_bound, max_bound", [("m1", 0.3, 0.7), ("dom", 0.25, 0.85)])
+def test_point_source_matches_the_analytic_irradiance(angular, mean_bound, max_bound):
+    """A single VPL is the hardest case for both: "m1" reads its far light (a true beam) no
+    narrower than mean cosine 2/3; "dom" carries it along 64 directions, so far from the source
+    the light of one VPL shows the gaps between them (ray effects: the larger max)."""
+    logs = _point_source_log_errors(angular)
+    print(f"\n{angular} point source vs analytic: mean |log ratio| {logs.mean():.3f}, max "
           f"{logs.max():.3f}")
-    assert logs.mean() < 0.3 and logs.max() < 0.7
+    assert logs.mean() < mean_bound and logs.max() < max_bound
 
 
-def test_m1_wide_diffuse_patch_matches_the_analytic_irradiance():
+@pytest.mark.parametrize("angular, mean_bound, max_bound", [("m1", 0.3, 0.55), ("dom", 0.1, 0.2)])
+def test_wide_diffuse_patch_matches_the_analytic_irradiance(angular, mean_bound, max_bound):
     """A 6 x 6-cell diffuse patch (flux 1) lights planes 3, 6 and 10 cells above it; the
     analytic irradiance of a receiver facing down is sum_i (Phi_i / pi) cos^2 / d^2 over the
     patch's VPLs. Guards against light piling up above the patch's centre (collimation)."""
@@ -219,20 +222,21 @@ def test_m1_wide_diffuse_patch_matches_the_analytic_irradiance():
     n = np.tile([0.0, 0.0, 1.0], (xs.size, 1))
     flux = np.full((xs.size, 3), 1.0 / xs.size)
     acc = propagation.propagate(injection.inject(g, pos, n, flux), 72, min_fraction=1e-4,
-                                angular="m1").values
+                                angular=angular).values
     logs = []
     for h in (3.0, 6.0, 10.0):
         for x in np.linspace(4.0, 20.0, 9):
             p = np.array([[x, 12.0, 4.0 + h]])
             e = lookup.irradiance(g, acc, p, np.array([[0.0, 0.0, -1.0]]), offset_cells=0.0,
-                                  angular="m1")[0, 0]
+                                  angular=angular)[0, 0]
             d = p - pos
             r2 = (d * d).sum(1)
             analytic = (flux[:, 0] / np.pi * d[:, 2] ** 2 / r2**2).sum()
             logs.append(np.log(e / analytic))
     logs = np.abs(np.array(logs))
-    print(f"\nm1 wide patch vs analytic: mean |log ratio| {logs.mean():.3f}, max {logs.max():.3f}")
-    assert logs.mean() < 0.3 and logs.max() < 0.55
+    print(f"\n{angular} wide patch vs analytic: mean |log ratio| {logs.mean():.3f}, "
+          f"max {logs.max():.3f}")
+    assert logs.mean() < mean_bound and logs.max() < max_bound
 
 
 def test_more_bounces_add_light_and_converge():

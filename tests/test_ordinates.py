@@ -1,0 +1,126 @@
+"""Discrete-ordinates propagation (lpv_core/ordinates.py, angular="dom"): exact flux
+bookkeeping, occluders, directions kept apart, hand-on to the next cascade."""
+
+import numpy as np
+import pytest
+
+from lpv_core import closure, grid, injection, ordinates, propagation, sh
+
+
+def _random_moments(r=8, seed=3):
+    rng = np.random.default_rng(seed)
+    values = np.zeros((r, r, r, 3, 4), np.float32)
+    inner = rng.normal(size=(4, 4, 4, 3, 4)).astype(np.float32)
+    inner[..., 0] = np.abs(inner[..., 0]) + 0.5
+    values[2:6, 2:6, 2:6] = inner
+    return values
+
+
+def test_tables_cover_the_sphere_and_each_direction_splits_its_flux_exactly():
+    dirs, basis, groups = ordinates.tables()
+    assert dirs.shape == (64, 3)
+    np.testing.assert_allclose(np.linalg.norm(dirs, axis=1), 1.0, atol=1e-6)
+    assert abs(dirs.mean(axis=0)).max() < 0.002  # near-uniform: an even spread barely drifts
+    seen = np.zeros(64, int)
+    for sl, pairs in groups:
+        assert len(pairs) == 8  # every octant lands between 8 cells
+        total = sum(w[:, 0, 0, 0, 0] for _, _, w in pairs)
+        np.testing.assert_allclose(total, 1.0, atol=1e-6)  # trilinear weights sum to one
+        seen[sl] += 1
+        for _, off, _ in pairs:  # a direction only moves the way it points
+            signs = np.sign(dirs[sl])
+            for a in range(3):
+                assert off[a] == 0 or np.all(signs[:, a] == off[a])
+    assert np.all(seen == 1)
+    np.testing.assert_allclose(basis, sh.evaluate_basis(dirs.astype(np.float64)), atol=1e-6)
+
+
+def test_unfold_keeps_the_flux_sends_nothing_behind_an_emitter_and_folds_back():
+    g = grid.Grid((0.0, 0.0, 0.0), 1.0, 8)
+    n = np.array([[0.0, 0.6, 0.8]])
+    values = injection.inject(g, np.array([[4.0, 4.0, 4.0]]), n, np.ones((1, 3)))
+    flux = ordinates.unfold(values)
+    np.testing.assert_allclose(flux.sum(axis=(0, 2, 3, 4)), propagation.flux(values), rtol=1e-5)
+    dirs = ordinates.tables()[0]
+    behind = dirs @ n[0] < 0
+    assert flux[behind].max() == 0.0  # a diffuse emitter sends nothing through its surface
+    assert flux.min() >= 0.0
+    folded = ordinates.fold(flux)
+    np.testing.assert_allclose(propagation.flux(folded), propagation.flux(values), rtol=1e-5)
+    held, r, d = closure.moments(folded.reshape(-1, 4))
+    lit = held > 1e-6 * held.max()
+    # The folded lobe points the emitter's way with about a diffuse emitter's mean cosine.
+    assert np.all(d[lit] @ n[0] > 0.99)
+    np.testing.assert_allclose(r[lit], closure.LAMBERTIAN_MEAN_COSINE, atol=0.03)
+
+
+def test_step_conserves_flux_and_respects_occluders():
+    flux = ordinates.unfold(_random_moments())
+    before = flux.sum()
+    out = ordinates.step(flux)
+    np.testing.assert_allclose(out.sum(), before, rtol=1e-5)  # nothing reached the border
+    closed = np.zeros((6, 8, 8, 8), np.float32)  # every face blocks
+    offvis = propagation._offset_visibilities(closed)
+    out = ordinates.step(flux, offvis)
+    live = flux.sum(axis=(0, 1)) > 0
+    # Only the "stay" share (offset 0, no face crossed) survives, in the cells it left.
+    assert np.all(out.sum(axis=(0, 1))[~live] == 0)
+    assert out.sum() < before
+
+
+def test_beams_cross_without_merging():
+    """Two beams crossing in one cell come out the other side along their own directions
+    (a two-moment cell would merge them into one lobe along their mean)."""
+    dirs, _, _ = ordinates.tables()
+    r = 16
+    flux = np.zeros((64, 3, r, r, r), np.float32)
+    a = int(np.argmax(dirs @ np.array([1.0, 0.0, 0.0])))
+    b = int(np.argmax(dirs @ np.array([0.0, 1.0, 0.0])))
+    flux[a, :, 2, 8, 8] = 1.0
+    flux[b, :, 8, 2, 8] = 1.0
+    for _ in range(12):
+        flux = ordinates.step(flux)
+    assert set(np.nonzero(flux.sum(axis=(1, 2, 3, 4)))[0]) == {a, b}
+    np.testing.assert_allclose(flux[a].sum(), 3.0, rtol=1e-3)  # a sliver spreads out
+    np.testing.assert_allclose(flux[b].sum(), 3.0, rtol=1e-3)
+
+
+@pytest.mark.parametrize("occluded", [False, True])
+def test_outflow_plus_what_stays_plus_absorbed_is_the_injected_flux(occluded):
+    """capture_outflow hands on exactly what leaves the grid (to the next cascade)."""
+    values = _random_moments()
+    vis = None
+    if occluded:
+        vis = np.random.default_rng(5).uniform(0.5, 1.0, (6, 8, 8, 8)).astype(np.float32)
+    free = propagation.propagate(values, 200, min_fraction=1e-7, visibility=None,
+                                 angular="dom", capture_outflow=True)
+    assert free.outflow.shape == (10, 10, 10, 3, 4)
+    # Without occluders everything leaves in the end.
+    np.testing.assert_allclose(propagation.flux(free.outflow), propagation.flux(values),
+                               rtol=1e-4)
+    res = propagation.propagate(values, 200, min_fraction=1e-7, visibility=vis,
+                                angular="dom", capture_outflow=True, occlude_first_step=True)
+    out = propagation.flux(res.outflow)
+    assert np.all(out <= propagation.flux(values) * (1 + 1e-5))
+    if occluded:
+        assert np.all(out < 0.99 * propagation.flux(values))
+    assert np.isfinite(res.values).all() and np.isfinite(res.outflow).all()
+
+
+def test_propagate_stops_once_a_step_moves_little_and_never_gains_energy():
+    values = _random_moments()
+    res = propagation.propagate(values, 500, min_fraction=1e-3, angular="dom")
+    assert res.stopped_early and res.remaining_fraction < 1e-3
+    assert res.iterations < 500
+    flux = ordinates.unfold(values)
+    last = flux.sum()
+    for _ in range(40):
+        flux = ordinates.step(flux)
+        now = flux.sum()
+        assert now <= last * (1 + 1e-6)
+        last = now
+
+
+def test_a_single_step_of_moments_is_refused_with_a_pointer():
+    with pytest.raises(ValueError, match="propagate"):
+        propagation.step(_random_moments(), angular="dom")
