@@ -83,43 +83,82 @@ def fold(flux: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(m.transpose(2, 3, 4, 1, 0))
 
 
-def live_box(flux: np.ndarray):
-    """Per axis [lo, hi) range of the cells holding any light, or None."""
-    live = (flux > 0).any(axis=(0, 1))
-    box = []
+def pad(flux: np.ndarray) -> np.ndarray:
+    """(q, 3, R, R, R) -> the padded flat layout (q, 3, (R + 2)^3) that ``advance`` steps: a
+    one-cell shell of zeros around the grid, cells in C order. A neighbour offset becomes one
+    shift of the flat index, so each (direction, offset) is one contiguous multiply-add, and
+    light leaving the grid lands in the shell (the outflow) instead of wrapping."""
+    q, c = flux.shape[:2]
+    return np.pad(flux, ((0, 0), (0, 0), (1, 1), (1, 1), (1, 1))).reshape(q, c, -1)
+
+
+def interior(flat: np.ndarray, r: int) -> np.ndarray:
+    """The grid (q, 3, R, R, R) of a padded flat array (a view)."""
+    return flat.reshape(*flat.shape[:-1], r + 2, r + 2, r + 2)[..., 1:-1, 1:-1, 1:-1]
+
+
+def take_shell(flat: np.ndarray, r: int, into: np.ndarray | None = None) -> None:
+    """Empty the shell of a padded flat array (what left the grid), adding it to ``into``
+    (same layout) when given."""
+    grid = flat.reshape(*flat.shape[:-1], r + 2, r + 2, r + 2)
+    keep = None if into is None else into.reshape(grid.shape)
     for axis in range(3):
-        hit = np.nonzero(live.any(axis=tuple(a for a in range(3) if a != axis)))[0]
-        if hit.size == 0:
-            return None
-        box.append((int(hit[0]), int(hit[-1]) + 1))
-    return box
+        for side in (0, -1):
+            sl = [slice(None)] * grid.ndim
+            sl[grid.ndim - 3 + axis] = side
+            sl = tuple(sl)
+            if keep is not None:
+                keep[sl] += grid[sl]
+            grid[sl] = 0.0
+
+
+def factors(r: int, offset_visibility: list | None = None) -> list:
+    """Per octant: (direction slice, [(flat shift, weight x transmittance (n, 1, L), or the
+    weights alone (n, 1, 1) without visibility)]) for ``advance`` on an R^3 grid.
+    ``offset_visibility``: per propagation.OFFSETS entry the (R, R, R) transmittance from each
+    source cell towards that neighbour (propagation._offset_visibilities), or None."""
+    _, _, groups = tables()
+    p = r + 2
+    padded = None
+    if offset_visibility is not None:
+        padded = [np.pad(v, 1).reshape(1, 1, -1).astype(np.float32) for v in offset_visibility]
+    out = []
+    for sl, pairs in groups:
+        row = []
+        for k_off, off, w in pairs:
+            shift = (off[0] * p + off[1]) * p + off[2]
+            weight = w[:, :, 0, 0, 0, None]  # (n, 1, 1)
+            row.append((shift, weight if padded is None else weight * padded[k_off]))
+        out.append((sl, row))
+    return out
+
+
+def advance(flat: np.ndarray, factor_table: list) -> np.ndarray:
+    """One step on the padded flat layout: every direction's flux moves one cell length.
+
+    ``flat`` (q, 3, (R + 2)^3) holds light in the interior only; the result holds the arrivals,
+    those that left the grid in the shell (take_shell). ``factor_table``: ``factors`` for this
+    grid and visibility. Only the flat range of cells holding light is read."""
+    out = np.zeros_like(flat)
+    live = np.flatnonzero(flat.any(axis=(0, 1)))
+    if live.size == 0:
+        return out
+    lo, hi = int(live[0]), int(live[-1]) + 1
+    for sl, row in factor_table:
+        src = flat[sl, :, lo:hi]
+        buf = np.empty_like(src)
+        for shift, weight in row:
+            np.multiply(src, weight if weight.shape[-1] == 1 else weight[..., lo:hi], out=buf)
+            out[sl, :, lo + shift:hi + shift] += buf
+    return out
 
 
 def step(flux: np.ndarray, offset_visibility: list | None = None) -> np.ndarray:
-    """Advect every direction's flux one cell length: (q, 3, R, R, R) -> the same.
-
-    ``offset_visibility``: per propagation.OFFSETS entry the (R, R, R) transmittance from each
-    source cell towards that neighbour (propagation._offset_visibilities), or None. Light that
-    would land outside the grid leaves it. Only the box of cells holding light is read."""
-    _, _, groups = tables()
-    r = flux.shape[2:]
-    out = np.zeros_like(flux)
-    box = live_box(flux)
-    if box is None:
-        return out
-    for sl, pairs in groups:
-        for k_off, off, w in pairs:
-            src, dst = [sl, slice(None)], [sl, slice(None)]
-            for axis in range(3):
-                lo = max(box[axis][0], -off[axis])
-                hi = min(box[axis][1], r[axis] - off[axis])
-                if hi <= lo:
-                    break
-                src.append(slice(lo, hi))
-                dst.append(slice(lo + off[axis], hi + off[axis]))
-            else:
-                sent = flux[tuple(src)] * w
-                if offset_visibility is not None:
-                    sent *= offset_visibility[k_off][tuple(src[2:])]
-                out[tuple(dst)] += sent
-    return out
+    """Advect every direction's flux one cell length: (q, 3, R, R, R) -> the same (light that
+    would land outside the grid leaves it). ``offset_visibility``: per propagation.OFFSETS
+    entry the (R, R, R) transmittance from each source cell towards that neighbour
+    (propagation._offset_visibilities), or None. The propagation itself stays in the padded
+    layout between steps (``advance``)."""
+    r = flux.shape[-1]
+    out = advance(pad(flux), factors(r, offset_visibility))
+    return np.ascontiguousarray(interior(out, r))

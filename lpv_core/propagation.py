@@ -359,37 +359,31 @@ def _propagate_capturing(injected, iterations, min_fraction, visibility, reproje
 def _propagate_ordinates(injected, iterations, min_fraction, visibility, occlude_first_step,
                          capture_outflow) -> PropagationResult:
     """propagate() with angular="dom" (ordinates.py): the injected lobes are unfolded once into
-    flux per direction, advected step by step, and folded back into moments once at the end.
-    With ``capture_outflow`` the grid is padded by one cell whose arrivals become ``outflow``."""
-    pad = ((1, 1),) * 3 + ((0, 0), (0, 0)) if capture_outflow else None
-    vis = visibility
-    if pad is not None and visibility is not None:
-        vis = np.pad(visibility, ((0, 0), (1, 1), (1, 1), (1, 1)), constant_values=1.0)
-    cur = ordinates.unfold(np.pad(injected, pad) if pad is not None else injected)
+    flux per direction, advected step by step in the padded flat layout (ordinates.advance),
+    and folded back into moments once at the end. What lands in the layout's one-cell shell
+    left the grid: with ``capture_outflow`` it is kept as ``outflow`` ((R+2)^3 grid)."""
+    r = injected.shape[0]
+    cur = ordinates.pad(ordinates.unfold(injected))
     total0 = float(cur.sum(dtype=np.float64))
     acc = np.zeros_like(cur)
-    outflow = np.zeros_like(cur) if pad is not None else None
-    offvis = _offset_visibilities(vis)
+    outflow = np.zeros_like(cur) if capture_outflow else None
+    free = ordinates.factors(r)
+    occluded = free if visibility is None else ordinates.factors(
+        r, _offset_visibilities(visibility))
     fraction = 1.0 if total0 > 0 else 0.0
     done, early = 0, total0 <= 0
     for _ in range(0 if early else max(int(iterations), 0)):
-        cur = ordinates.step(cur, offvis if (done > 0 or occlude_first_step) else None)
-        if outflow is not None:
-            for axis in range(3):  # move the arrivals in the pad shell to outflow
-                for side in (0, -1):
-                    sl = [slice(None)] * 5
-                    sl[2 + axis] = side
-                    outflow[tuple(sl)] += cur[tuple(sl)]
-                    cur[tuple(sl)] = 0.0
+        cur = ordinates.advance(cur, occluded if (done > 0 or occlude_first_step) else free)
+        ordinates.take_shell(cur, r, outflow)
         acc += cur
         done += 1
         fraction = float(cur.sum(dtype=np.float64)) / total0
         if fraction < min_fraction:
             early = True
             break
-    values = ordinates.fold(acc)
-    if pad is not None:
-        values = values[1:-1, 1:-1, 1:-1]
+    values = ordinates.fold(np.ascontiguousarray(ordinates.interior(acc, r)))
     values += injected.astype(np.float32)
-    return PropagationResult(values, done, flux(injected), fraction, early,
-                             ordinates.fold(outflow) if outflow is not None else None)
+    if outflow is not None:
+        q = outflow.shape[0]
+        outflow = ordinates.fold(outflow.reshape(q, 3, r + 2, r + 2, r + 2))
+    return PropagationResult(values, done, flux(injected), fraction, early, outflow)

@@ -127,7 +127,7 @@ def record_steps():
     chain's input (the injected grid). Yields the log dict {"steps": [...], "injected": ...}."""
     log: dict = {"steps": [], "injected": None, "_last": None}
     original = propagation.step
-    unfold, advect = propagation.ordinates.unfold, propagation.ordinates.step
+    unfold, advect = propagation.ordinates.unfold, propagation.ordinates.advance
 
     def wrapped(values, *args, **kwargs):
         out = original(values, *args, **kwargs)
@@ -150,12 +150,12 @@ def record_steps():
         return out
 
     propagation.step = wrapped
-    propagation.ordinates.unfold, propagation.ordinates.step = unfolded, advected
+    propagation.ordinates.unfold, propagation.ordinates.advance = unfolded, advected
     try:
         yield log
     finally:
         propagation.step = original
-        propagation.ordinates.unfold, propagation.ordinates.step = unfold, advect
+        propagation.ordinates.unfold, propagation.ordinates.advance = unfold, advect
 
 
 def _nonfinite(*arrays) -> int:
