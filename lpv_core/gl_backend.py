@@ -1,15 +1,18 @@
 """moderngl compute-shader (GLSL 430) backend for injection, propagation and lookup.
 
-Mirrors ``injection.inject``, ``propagation.step`` / ``propagate`` (both angular models: "sh"
-with either re-projection, the flux-conserving scale, optional visibility, first step
+Mirrors ``injection.inject``, ``propagation.step`` / ``propagate`` (all three angular models:
+"sh" with either re-projection, the flux-conserving scale, optional visibility, first step
 unoccluded unless ``occlude_first_step``, the accumulation and the early stop; "m1" with the
-closure's bundles and the advection matrix) and ``lookup.sample`` / ``irradiance`` ("sh" and
-"m1"), with the same signatures and semantics. The shaders are generated from the numpy
-modules' own tables and constants (propagation.tables, propagation._m1_tables, closure), so a
-change there carries over; a change of the algorithm itself must be ported. Agreement: 1e-4 relative or better
-(tests/test_gl_backend.py; about 2e-7 of the grid's largest value in practice). Options not
-ported yet (``capture_outflow``, unknown keywords) run the numpy code and are counted in
-``GLBackend.fallbacks``.
+closure's bundles and the advection matrix; "dom", discrete ordinates (ordinates.py), with its
+unfold, per-octant advection, fold and ``capture_outflow``; "dom" has no single step on moments
+and ``step`` raises as numpy's does) and ``lookup.sample`` / ``irradiance`` ("sh", and "m1" /
+"dom" read as the maximum-entropy lobe, closure.LOBE_MODELS), with the same signatures and
+semantics. The shaders are generated from the numpy modules' own tables and constants
+(propagation.tables, propagation._m1_tables, ordinates.tables, closure), so a change there
+carries over; a change of the algorithm itself must be ported. Agreement: 1e-4 relative or
+better (tests/test_gl_backend.py; about 2e-7 of the grid's largest value in practice). Options
+not ported yet (``capture_outflow`` with "sh" / "m1", unknown keywords) run the numpy code and
+are counted in ``GLBackend.fallbacks``.
 
 Module-level functions take and return numpy arrays exactly like the numpy ones. The methods
 of ``GLBackend`` keep data on the GPU between stages: ``inject`` returns a ``GLGrid`` (a
@@ -34,6 +37,18 @@ largest value even after 10^4 adds to one cell.
 
 Memory: the "m1" step keeps 27 x 3 vec4 of arrivals per cell between its two passes
 (42 MB at 32^3, 340 MB at 64^3, 2.7 GB at 128^3).
+
+"dom" keeps the flux per direction for the whole propagation, q x 3 x R^3 x 4 bytes (q = 64:
+768 B per cell; packed per octant into 52 vec4 = 832 B) in each of three rgba32f 3-D textures
+(current, next, accumulated; a fourth for the outflow with ``capture_outflow``, on the grid
+padded by one cell): 82 MB at 32^3, 650 MB at 64^3, 5.2 GB at 128^3 (plus a few % where a
+side is rounded off a power of two, see _texture3d). The flux is held in images rather than
+storage buffers because llvmpipe loads an image texel 3-5x faster than a storage-buffer vec4 at
+a per-invocation index (its buffer loads run lane by lane). A step is one dispatch per octant
+(each cell gathers its octant's ~8 directions from 8 sources), the moved flux is summed in
+double precision per work group and finished in float64, so the early stop decides as numpy's
+float64 sum does. The 10 "dom" programs take ~10 s to compile on llvmpipe (once; Mesa's disk
+cache keeps them).
 """
 
 from __future__ import annotations
@@ -527,6 +542,298 @@ void main() {
 """
     return arrivals, gather
 
+
+# Discrete ordinates (angular="dom", ordinates.py). State: flux per direction, (q, 3, R, R, R)
+# float32 (q = 64), ping-pong between two buffers plus the accumulated flux (and, with
+# capture_outflow, the flux that reached the one-cell pad shell). Sums for the early stop are
+# reduced in double precision per work group and finished in float64 on the CPU.
+_DREDUCE_FN = """
+shared dvec4 dred[64];
+void reduce_sums(dvec4 f) {  // per work group sum -> dpartial[4 x (part_base + group)]
+    uint l = gl_LocalInvocationID.x;
+    dred[l] = f;
+    barrier();
+    for (uint s = 32u; s > 0u; s >>= 1) {
+        if (l < s) dred[l] += dred[l + s];
+        barrier();
+    }
+    if (l == 0u) {
+        uint g = part_base + base / 64u + gl_WorkGroupID.x;
+        dpartial[4u * g] = dred[0].x;
+        dpartial[4u * g + 1u] = dred[0].y;
+        dpartial[4u * g + 2u] = dred[0].z;
+        dpartial[4u * g + 3u] = dred[0].w;
+    }
+}
+"""
+
+
+def _dom_layout():
+    """Packing of the flux per cell into vec4 slots: per octant (first direction, directions,
+    first slot, slots); its 3 x n (direction, colour) values fill ceil(3 n / 4) vec4s, value
+    k = 3 i + colour of direction j0 + i at component k % 4 of slot first + k // 4 (the rest
+    of the last slot is zero). Returns (octants, total slots)."""
+    from . import ordinates
+
+    _, _, groups = ordinates.tables()
+    out, slot = [], 0
+    for sl, _pairs in groups:
+        n = sl.stop - sl.start
+        m = -(-3 * n // 4)
+        out.append((sl.start, n, slot, m))
+        slot += m
+    return out, slot
+
+
+def _not_power_of_two(n: int) -> int:
+    """The smallest m >= n that is not a power of two."""
+    while n & (n - 1) == 0:
+        n += 1
+    return n
+
+
+def _set_tiles(prog, tiles: np.ndarray) -> None:
+    """The tiles uniform (only the slots a program reads are active)."""
+    u = prog["tiles"]
+    u.write(np.ascontiguousarray(tiles[:u.array_length]).tobytes())
+
+
+def _dom_tiling(r: int, slots: int, max_size: int) -> tuple[int, int] | None:
+    """(A, B): the flux of an R^3 grid is one rgba32f 3-D texture (R A, R, R B), slot t's
+    cells at the tile (t % A, t // A) (cell (x, y, z) at texel (z + R (t % A), y, x + R (t // A)):
+    consecutive invocations read consecutive texels). None if it exceeds max_size."""
+    b = -(-slots // max(1, min(slots, max_size // r)))  # fewest rows of tiles
+    a = -(-slots // b)  # then the fewest tiles per row: a x b - slots unused tiles < b
+    return (a, b) if r * a <= max_size and r * b <= max_size else None
+
+
+_TEXEL_FN = """
+ivec3 cell_of(uint c, int n) { return ivec3(int(c) / (n * n), (int(c) / n) % n, int(c) % n); }
+bool inside(ivec3 s, int n) {
+    return all(greaterThanEqual(s, ivec3(0))) && all(lessThan(s, ivec3(n)));
+}
+uint index_of(ivec3 s, int n) { return uint((s.x * n + s.y) * n + s.z); }
+ivec3 texel(ivec3 p, int t) { return ivec3(p.z + tiles[t].x, p.y, p.x + tiles[t].y); }
+"""
+
+
+def _dom_sources() -> dict:
+    """{"unfold", "fold", ("step", octant)...} shaders of ordinates.unfold / fold / step, the
+    tables (ordinates.tables: directions, SH basis, per octant its 8 offsets' trilinear
+    weights) baked in as constants. The flux lives in rgba32f 3-D images (_dom_layout,
+    _dom_tiling): on llvmpipe an image load costs a fraction of a storage-buffer load with a
+    per-invocation index (measured 3-5x), and a GPU caches them as textures.
+
+    unfold, per cell of the flux grid: the injected lobe read as just-emitted light
+    (closure.emission_density) over the q directions, scaled to the flux held; band 0 and the
+    flux written are summed (injected flux, the early stop's reference). step, one program per
+    octant, per destination cell: its octant's directions gather from the 8 (fewer at the
+    border) sources dst - offset, x trilinear weight x the source's transmittance towards that
+    offset (propagation._offset_visibility); arrivals in the pad shell go to outflow instead.
+    The first step writes acc and outflow instead of adding (no clearing pass). fold, per
+    output cell: sum_j flux_j Y(w_j), plus the injected grid.
+    """
+    from . import ordinates
+
+    dirs, basis, groups = ordinates.tables()
+    dirs = np.asarray(dirs, np.float32)
+    basis = np.asarray(basis, np.float32)
+    q = dirs.shape[0]
+    layout, slots = _dom_layout()
+    where = {}  # direction -> index of its first value in the packed cell (4 x slots floats)
+    for j0, n, s0, _m in layout:
+        for i in range(n):
+            where[j0 + i] = 4 * s0 + 3 * i
+    lines = []
+    for j, w in enumerate(dirs):
+        lines += [f"        cw = dot(d, vec3({_lit(w[0])}, {_lit(w[1])}, {_lit(w[2])}));",
+                  (f"        b[{j}] = r > 0.5 ? (cw > 0.0 ? exp2(ne * log2(cw)) : 0.0) "
+                   ": (1.0 - 2.0 * r) + (cw > 0.0 ? 4.0 * r : 0.0);"),
+                  f"        total += b[{j}];"]
+    writes = [f"        x = b[{j}] * scale; f[{where[j]}u + ch] = x; tot += double(x);"
+              for j in range(q)]
+    stores = [f"        imageStore(flux, texel(p, {t}), vec4(f[{4 * t}], f[{4 * t + 1}], "
+              f"f[{4 * t + 2}], f[{4 * t + 3}]));" for t in range(slots)]
+    unfold = _HEADER + _closure_consts() + f"""
+const float EMISSION_R_MAX = {_lit(closure.LAMBERTIAN_MEAN_COSINE)};
+layout(std430, binding = 0) readonly buffer Inj {{ vec4 inj[]; }};  // (RI, RI, RI, 3) x 4
+layout(std430, binding = 1) writeonly buffer DPartial {{ double dpartial[]; }};
+layout(rgba32f, binding = 0) writeonly uniform image3D flux;
+uniform uint count;  // cells of the flux grid, R^3
+uniform int R;       // flux grid (RI + 2 pad)
+uniform int RI;      // injected grid
+uniform int pad;     // 0, or 1 with capture_outflow
+uniform ivec2 tiles[SLOTS];  // per slot its tile's first texel along x and z (_dom_tiling)
+uniform uint part_base;
+""" + _MOMENTS_FN + _DREDUCE_FN + _TEXEL_FN + """
+void main() {
+    uint c = base + gl_GlobalInvocationID.x;
+    dvec4 sums = dvec4(0.0);
+    if (c < count) {
+        ivec3 p = cell_of(c, R);
+        ivec3 pi = p - pad;
+        bool in_grid = inside(pi, RI);
+        uint ic = in_grid ? index_of(pi, RI) : 0u;
+        double tot = 0.0;
+        float f[NF];
+        for (int k = 0; k < NF; ++k) f[k] = 0.0;
+        for (uint ch = 0u; ch < 3u; ++ch) {
+        vec4 v = in_grid ? inj[ic * 3u + ch] : vec4(0.0);
+        sums[ch] = double(max(v.x, 0.0));
+        float held, r;
+        vec3 d;
+        moments(v, held, r, d);
+        float rr = clamp(r, 0.5 + 1e-6, EMISSION_R_MAX);  // closure.emission_density
+        float ne = (2.0 * rr - 1.0) / (1.0 - rr);
+        float b[Q];
+        float cw, x, total = 0.0;
+BUNDLES
+        if (!(total > 0.0)) {  // nothing points anywhere: uniform (numpy's where(sum > 0))
+            for (int j = 0; j < Q; ++j) b[j] = 1.0;
+            total = float(Q);
+        }
+        float scale = held / total;
+WRITES
+        }
+STORES
+        sums.w = tot;
+    }
+    reduce_sums(sums);
+}
+""".replace("BUNDLES", "\n".join(lines)).replace("WRITES", "\n".join(writes)).replace(
+        "STORES", "\n".join(stores)).replace("NF", str(4 * slots)).replace(
+        "Q]", f"{q}]").replace("< Q;", f"< {q};").replace("float(Q)", f"float({q})")
+    fold_lines = []
+    for j0, n, s0, m in layout:
+        for t in range(m):
+            fold_lines.append(f"        f = imageLoad(acc, texel(pf, {s0 + t}));")
+            for comp in range(min(4, 3 * n - 4 * t)):
+                k = 4 * t + comp
+                vals = ", ".join(_lit(x) for x in basis[j0 + k // 3])
+                fold_lines.append(f"        m{k % 3} += vec4({vals}) * f.{'xyzw'[comp]};")
+    fold = _HEADER + """
+layout(rgba32f, binding = 0) readonly uniform image3D acc;        // the flux, RF^3 cells
+layout(std430, binding = 0) readonly buffer Inj { vec4 inj[]; };  // (R, R, R, 3) x 4
+layout(std430, binding = 1) writeonly buffer Dst { vec4 dst[]; };  // (R, R, R, 3) x 4
+uniform uint count;  // output cells, R^3
+uniform int R;
+uniform int pad;
+uniform ivec2 tiles[SLOTS];
+uniform int use_acc;  // 0: no step was run, acc holds nothing
+uniform int add_injected;
+""" + _TEXEL_FN + """
+void main() {
+    uint c = base + gl_GlobalInvocationID.x;
+    if (c >= count) return;
+    ivec3 pf = cell_of(c, R) + pad;
+    vec4 m0 = vec4(0.0), m1 = vec4(0.0), m2 = vec4(0.0), f;
+    if (use_acc != 0) {
+FOLD
+    }
+    if (add_injected != 0) {
+        m0 += inj[c * 3u];
+        m1 += inj[c * 3u + 1u];
+        m2 += inj[c * 3u + 2u];
+    }
+    dst[c * 3u] = m0;
+    dst[c * 3u + 1u] = m1;
+    dst[c * 3u + 2u] = m2;
+}
+""".replace("FOLD", "\n".join(fold_lines))
+    vis = _HEADER + """
+layout(std430, binding = 0) readonly buffer Vis { float vis[]; };  // (6, R, R, R)
+layout(rgba32f, binding = 0) writeonly uniform image3D dst;
+uniform uint count;  // R^3
+uniform int R;
+void main() {
+    uint c = base + gl_GlobalInvocationID.x;
+    if (c >= count) return;
+    ivec3 p = ivec3(int(c) / (R * R), (int(c) / R) % R, int(c) % R);
+    imageStore(dst, ivec3(p.z, p.y, p.x), vec4(vis[c], vis[count + c], vis[2u * count + c],
+                                               vis[3u * count + c]));
+    imageStore(dst, ivec3(p.z, p.y, p.x + R), vec4(vis[4u * count + c], vis[5u * count + c],
+                                                   1.0, 1.0));
+}
+"""
+    out = {"unfold": unfold, "fold": fold, "vis": vis}
+    for o, (_sl, pairs) in enumerate(groups):
+        _j0, n, s0, m = layout[o]
+        body = [f"        vec4 a{t} = vec4(0.0);" for t in range(m)]
+        for _k_off, off, w in pairs:
+            w = np.asarray(w, np.float32).reshape(-1)
+            faces = [2 * a + (0 if off[a] == 1 else 1) for a in range(3) if off[a] != 0]
+            body += [f"        s = dst - ivec3({off[0]}, {off[1]}, {off[2]});",
+                     "        if (inside(s, R)) {",
+                     "            v = 1.0;"]
+            if faces:  # propagation._offset_visibility: the faces it crosses, at the source
+                body.append("            if (use_vis != 0 && vis_cell(s, vc)) {")
+                if any(f < 4 for f in faces):
+                    body.append("                vv = imageLoad(vis, ivec3(vc.z, vc.y, vc.x));")
+                    body += [f"                v *= vv.{'xyzw'[f]};" for f in faces if f < 4]
+                if any(f >= 4 for f in faces):
+                    body.append("                vv = imageLoad(vis, ivec3(vc.z, vc.y, "
+                                "vc.x + RV));")
+                    body += [f"                v *= vv.{'xy'[f - 4]};" for f in faces if f >= 4]
+                body.append("            }")
+            for t in range(m):
+                ws = [float(w[(4 * t + comp) // 3]) if 4 * t + comp < 3 * n else 0.0
+                      for comp in range(4)]
+                body.append(f"            a{t} += imageLoad(cur, texel(s, {s0 + t})) * "
+                            f"(vec4({', '.join(_lit(x) for x in ws)}) * v);")
+            body.append("        }")
+        body.append("        if (is_shell) {")
+        for t in range(m):
+            body += [f"            p = texel(dst, {s0 + t});",
+                     (f"            imageStore(outflow, p, first != 0 ? a{t} : "
+                      f"imageLoad(outflow, p) + a{t});"),
+                     "            imageStore(nxt, p, vec4(0.0));",
+                     "            if (first != 0) imageStore(acc, p, vec4(0.0));"]
+        body.append("        } else {")
+        for t in range(m):
+            body += [f"            p = texel(dst, {s0 + t});",
+                     f"            imageStore(nxt, p, a{t});",
+                     (f"            imageStore(acc, p, first != 0 ? a{t} : "
+                      f"imageLoad(acc, p) + a{t});"),
+                     "            if (first != 0 && pad != 0) imageStore(outflow, p, vec4(0.0));",
+                     (f"            sent += double(a{t}.x) + double(a{t}.y) + double(a{t}.z) "
+                      f"+ double(a{t}.w);")]
+        body.append("        }")
+        out[("step", o)] = _HEADER + """
+layout(rgba32f, binding = 0) readonly uniform image3D cur;  // the flux (_dom_tiling)
+layout(rgba32f, binding = 1) writeonly uniform image3D nxt;
+layout(rgba32f, binding = 2) uniform image3D acc;
+layout(rgba32f, binding = 3) uniform image3D outflow;
+layout(rgba32f, binding = 4) readonly uniform image3D vis;  // (+x, -x, +y, -y), (+z, -z) per cell
+layout(std430, binding = 0) writeonly buffer DPartial { double dpartial[]; };
+uniform uint count;  // cells of the flux grid, R^3
+uniform int R;       // flux grid (RV + 2 pad)
+uniform int RV;      // visibility grid
+uniform int pad;     // 1: the outer shell is the pad (capture_outflow)
+uniform ivec2 tiles[SLOTS];
+uniform int use_vis;
+uniform int first;   // the first step: acc and outflow are written, not added to
+uniform uint part_base;
+""" + _DREDUCE_FN + _TEXEL_FN + """
+bool vis_cell(ivec3 s, out ivec3 vc) {  // the pad's transmittance is 1
+    vc = s - pad;
+    return inside(vc, RV);
+}
+void main() {
+    uint c = base + gl_GlobalInvocationID.x;
+    double sent = 0.0;
+    if (c < count) {
+        ivec3 dst = cell_of(c, R);
+        bool is_shell = pad != 0 && (any(equal(dst, ivec3(0))) || any(equal(dst, ivec3(R - 1))));
+        ivec3 s, p, vc;
+        vec4 vv;
+        float v;
+""" + "\n".join(body) + """
+    }
+    reduce_sums(dvec4(0.0, 0.0, 0.0, sent));
+}
+"""
+    return {key: src.replace("SLOTS", str(slots)) for key, src in out.items()}
+
 ADD_SCALED_SRC = _HEADER + """
 layout(std430, binding = 0) readonly buffer Src { float src[]; };
 layout(std430, binding = 1) buffer Dst { float dst[]; };
@@ -595,6 +902,8 @@ class GLBackend:
         self.ctx = ctx
         self._programs: dict = {}
         self._scratch: dict = {}
+        self._textures: dict = {}  # scratch 3-D textures (the "dom" flux)
+        self._dom_src: dict | None = None  # _dom_sources(), generated on first use
         self.fallbacks = 0  # calls answered by the numpy code (modes not ported yet)
 
     # -- plumbing -------------------------------------------------------------------------------
@@ -606,6 +915,9 @@ class GLBackend:
                 src = _lookup_source()
             elif name in ("m1_arrivals", "m1_gather"):
                 src = _m1_sources()[name == "m1_gather"]
+            elif name.startswith("dom_"):
+                sources = self._dom_src = self._dom_src or _dom_sources()
+                src = sources[name[4:] if reprojection is None else (name[4:], reprojection)]
             elif reprojection is None:
                 src = _SOURCES[name]
             else:
@@ -775,6 +1087,9 @@ class GLBackend:
     def step(self, values, visibility=None, reprojection: str = "kd10",
              angular: str = "sh", emission: bool = False) -> GLGrid:
         """``propagation.step`` on the GPU: the newly arrived intensity as a GLGrid."""
+        if angular == "dom":  # as propagation.step: no step on moments
+            raise ValueError('angular="dom" keeps flux per direction between steps: use '
+                             "propagate() or ordinates.step()")
         if angular not in ("sh", "m1"):
             return self.upload(self._numpy_step(values, visibility, reprojection, angular))
         if angular == "sh":
@@ -814,6 +1129,11 @@ class GLBackend:
         (counted in ``fallbacks``), so that the engine keeps working while the numpy
         reference moves ahead.
         """
+        if angular == "dom" and not extra:
+            res = self._propagate_dom(injected, iterations, min_fraction, visibility,
+                                      occlude_first_step, capture_outflow, readback, keep_gpu)
+            if res is not None:
+                return res
         if angular not in ("sh", "m1") or capture_outflow or extra:
             self.fallbacks += 1
             values = injected.read() if isinstance(injected, GLGrid) else injected
@@ -864,6 +1184,118 @@ class GLBackend:
                 acc = None
             return GLPropagationResult(values, done, flux0.astype(np.float32), fraction, early,
                                        gpu=acc)
+        finally:
+            if owned:
+                src.release()
+
+    def _dom_sums(self, partial, groups: int) -> np.ndarray:
+        """The double-precision per-work-group sums of a dom pass, finished in float64 (4,)."""
+        p = np.frombuffer(partial.read(size=groups * 32), np.float64).reshape(groups, 4)
+        return p.sum(axis=0)
+
+    def _texture3d(self, name: str, size: tuple):
+        """A scratch rgba32f 3-D texture of at least ``size`` (kept and reused between calls).
+        Every side is made not a power of two: llvmpipe compiles a shader variant per
+        power-of-two-ness of the bound images (~10 s for the dom shaders), this keeps it one."""
+        size = tuple(_not_power_of_two(int(d)) for d in size)
+        tex = self._textures.get(name)
+        if tex is None or tex.size != tuple(size):
+            if tex is not None:
+                tex.release()
+            tex = self._textures[name] = self.ctx.texture3d(tuple(size), 4, dtype="f4")
+        return tex
+
+    def _propagate_dom(self, injected, iterations, min_fraction, visibility, occlude_first_step,
+                       capture_outflow, readback, keep_gpu) -> propagation.PropagationResult:
+        """propagation._propagate_ordinates on the GPU: unfold once, step (one dispatch per
+        octant) until the moved flux falls below ``min_fraction`` of the unfolded flux, fold
+        the accumulated flux (+ the injected grid) once. None if the flux textures would exceed
+        GL_MAX_3D_TEXTURE_SIZE (the caller runs the numpy code)."""
+        octants, slots = _dom_layout()
+        r = injected.resolution if isinstance(injected, GLGrid) else injected.shape[0]
+        pad = 1 if capture_outflow else 0
+        rf = r + 2 * pad
+        tiling = _dom_tiling(rf, slots, int(self.ctx.info.get("GL_MAX_3D_TEXTURE_SIZE", 2048)))
+        if tiling is None:
+            return None
+        src, owned = self._as_gpu(injected)
+        try:
+            cells = rf**3
+            size = (rf * tiling[0], rf, rf * tiling[1])
+            tiles = np.array([(rf * (t % tiling[0]), rf * (t // tiling[0]))
+                              for t in range(slots)], np.int32)
+            cur, nxt = self._texture3d("dom_a", size), self._texture3d("dom_b", size)
+            acc = self._texture3d("dom_acc", size)
+            none = self._texture3d("dom_none", (1, 1, 1))
+            outflow = self._texture3d("dom_outflow", size) if pad else none
+            vis = self._visibility(visibility, r)
+            vis_img = none
+            if vis is not None:
+                vis_img = self._texture3d("dom_vis", (r, r, 2 * r))
+                vis_img.bind_to_image(0, read=False, write=True)
+                prog = self._program("dom_vis")
+                prog["R"].value = r
+                self._run(prog, r**3, [vis])
+            groups = -(-cells // LOCAL)
+            partial = self._buffer("dom_partial", groups * len(octants) * 32)
+            prog = self._program("dom_unfold")
+            prog["R"].value, prog["RI"].value, prog["pad"].value = rf, r, pad
+            _set_tiles(prog, tiles)
+            prog["part_base"].value = 0
+            cur.bind_to_image(0, read=False, write=True)
+            self._run(prog, cells, [src.buffer, partial])
+            sums = self._dom_sums(partial, groups)
+            injected_flux = (sums[:3] * sh.SQRT_4PI).astype(np.float32)
+            total0 = float(sums[3])
+            fraction = 1.0 if total0 > 0 else 0.0
+            done, early = 0, total0 <= 0
+            for _ in range(0 if early else max(int(iterations), 0)):
+                use_vis = vis is not None and (done > 0 or occlude_first_step)
+                cur.bind_to_image(0, read=True, write=False)
+                nxt.bind_to_image(1, read=False, write=True)
+                acc.bind_to_image(2, read=True, write=True)
+                outflow.bind_to_image(3, read=True, write=True)
+                vis_img.bind_to_image(4, read=True, write=False)
+                for o in range(len(octants)):
+                    prog = self._program("dom_step", o)
+                    prog["R"].value, prog["RV"].value, prog["pad"].value = rf, r, pad
+                    _set_tiles(prog, tiles)
+                    prog["first"].value = int(done == 0)
+                    prog["use_vis"].value = int(use_vis)
+                    prog["part_base"].value = o * groups
+                    self._run(prog, cells, [partial])
+                moved = float(self._dom_sums(partial, groups * len(octants))[3])
+                cur, nxt = nxt, cur
+                done += 1
+                fraction = moved / total0
+                if fraction < min_fraction:
+                    early = True
+                    break
+            out = GLGrid(self.ctx.buffer(reserve=src.nbytes), r)
+            fold = self._program("dom_fold")
+            _set_tiles(fold, tiles)
+            fold["use_acc"].value = int(done > 0)
+            fold["R"].value, fold["pad"].value = r, pad
+            fold["add_injected"].value = 1
+            acc.bind_to_image(0, read=True, write=False)
+            self._run(fold, r**3, [src.buffer, out.buffer])
+            outflow_values = None
+            if pad:
+                outflow_values = np.zeros((rf, rf, rf, 3, 4), np.float32)
+                if done > 0:
+                    folded = self._buffer("dom_outflow_moments", cells * 48)
+                    fold["R"].value, fold["pad"].value = rf, 0
+                    fold["add_injected"].value = 0
+                    outflow.bind_to_image(0, read=True, write=False)
+                    self._run(fold, cells, [src.buffer, folded])
+                    outflow_values[:] = np.frombuffer(folded.read(size=cells * 48),
+                                                      np.float32).reshape(outflow_values.shape)
+            values = out.read() if readback else None
+            if not keep_gpu:
+                out.release()
+                out = None
+            return GLPropagationResult(values, done, injected_flux, fraction, early,
+                                       outflow_values, gpu=out)
         finally:
             if owned:
                 src.release()
@@ -936,7 +1368,7 @@ class GLBackend:
                    **extra) -> np.ndarray:
         """Mirror of ``lookup.irradiance``: indirect irradiance (M, 3) in W/m^2
         (unknown keywords: the numpy code)."""
-        if angular not in ("sh", "m1") or extra:
+        if angular not in ("sh",) + closure.LOBE_MODELS or extra:
             from . import lookup
 
             self.fallbacks += 1
@@ -953,9 +1385,11 @@ class GLBackend:
 
     def release(self) -> None:
         """Free the backend's programs and scratch buffers."""
-        for obj in list(self._scratch.values()) + list(self._programs.values()):
+        for obj in (list(self._scratch.values()) + list(self._textures.values())
+                    + list(self._programs.values())):
             obj.release()
         self._scratch.clear()
+        self._textures.clear()
         self._programs.clear()
 
 

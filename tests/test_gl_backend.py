@@ -97,6 +97,8 @@ def test_injection_is_exact_and_order_independent_at_any_scale(gl):
 
 
 MODELS = [("sh", "kd10"), ("sh", "ray"), ("m1", "kd10")]  # (angular, reprojection)
+# "dom" (ordinates.py) has no step on moments, only a propagation.
+PROPAGATION_MODELS = MODELS + [("dom", "kd10")]
 
 
 @pytest.mark.parametrize(("angular", "reprojection"), MODELS)
@@ -138,7 +140,7 @@ def test_step_never_gains_energy(gl):
         assert (propagation.flux(out) <= propagation.flux(values) * (1 + 1e-6)).all()
 
 
-@pytest.mark.parametrize(("angular", "reprojection"), MODELS)
+@pytest.mark.parametrize(("angular", "reprojection"), PROPAGATION_MODELS)
 @pytest.mark.parametrize("occluded", [None, "first step open", "all steps"])
 @pytest.mark.parametrize("r", [7, 16, 20])
 def test_propagation_agrees(gl, angular, reprojection, occluded, r):
@@ -165,15 +167,19 @@ def test_propagation_early_stop_and_edge_cases_agree(gl):
     injected = injection.inject(g, *_vpls(g, 500, rng, spread=0.0))
     for kw in ({"iterations": 50, "min_fraction": 0.05}, {"iterations": 0},
                {"iterations": 3, "min_fraction": 0.0},
-               {"iterations": 50, "min_fraction": 0.05, "angular": "m1"}):
+               {"iterations": 50, "min_fraction": 0.05, "angular": "m1"},
+               {"iterations": 50, "min_fraction": 0.05, "angular": "dom"},
+               {"iterations": 0, "angular": "dom"},
+               {"iterations": 3, "min_fraction": 0.0, "angular": "dom"}):
         ref = propagation.propagate(injected, **kw)
         got = gl.propagate(injected, **kw)
         assert (got.iterations, got.stopped_early) == (ref.iterations, ref.stopped_early), kw
+        assert got.remaining_fraction == pytest.approx(ref.remaining_fraction, rel=RTOL), kw
         _agree(got.values, ref.values, f"propagate {kw}")
     zero = np.zeros_like(injected)
-    for iterations in (0, 4):
-        ref = propagation.propagate(zero, iterations)
-        got = gl.propagate(zero, iterations)
+    for iterations, angular in ((0, "sh"), (4, "sh"), (0, "dom"), (4, "dom")):
+        ref = propagation.propagate(zero, iterations, angular=angular)
+        got = gl.propagate(zero, iterations, angular=angular)
         assert (got.iterations, got.stopped_early, got.remaining_fraction) == \
             (ref.iterations, ref.stopped_early, ref.remaining_fraction)
         assert not got.values.any()
@@ -209,7 +215,7 @@ def test_lookup_agrees(gl, r):
     _agree(gl.sample(g, values, pos), lookup.sample(g, values, pos), f"sample {r}^3")
     _agree(gl.sample(g, values, pos, vis), lookup.sample(g, values, pos, vis),
            f"sample {r}^3 occluded")
-    for angular in ("sh", "m1"):
+    for angular in ("sh", "m1", "dom"):  # "dom" grids are read as "m1" (closure.LOBE_MODELS)
         for v in (None, vis):
             ref = lookup.irradiance(g, values, pos, nrm, angular=angular, visibility=v)
             got = gl.irradiance(g, values, pos, nrm, angular=angular, visibility=v)
@@ -218,7 +224,7 @@ def test_lookup_agrees(gl, r):
     assert gl.irradiance(g, values, pos[:0], nrm[:0]).shape == (0, 3)
 
 
-@pytest.mark.parametrize("angular", ["sh", "m1"])
+@pytest.mark.parametrize("angular", ["sh", "m1", "dom"])
 def test_cornell_box_end_to_end_agrees(gl, angular):
     # Engine defaults otherwise (occlusion by the geometry volume, direction groups).
     settings = GISettings(grid_resolution=24, rsm_resolution=96, shadow_resolution=128,
@@ -290,3 +296,40 @@ def test_options_not_ported_fall_back_to_numpy(gl):
     np.testing.assert_array_equal(got.outflow, ref.outflow)
     with pytest.raises(ValueError):
         gl.step(injected, angular="nope")
+
+
+def test_dom_runs_on_the_gpu(gl):
+    """angular="dom": propagation (also capture_outflow, GPU grids in and out) and lookup run
+    the shaders, not the numpy code; a single step on moments is refused as numpy does."""
+    be = gl.backend()
+    r = 9
+    g = _grid(r, seed=21)
+    rng = np.random.default_rng(21)
+    pos, nrm, flux = _vpls(g, 800, rng, spread=0.0)
+    injected = injection.inject(g, pos, nrm, flux)
+    vis = _visibility(r, rng)
+    before = be.fallbacks
+    for kw in ({}, {"visibility": vis}, {"visibility": vis, "occlude_first_step": True}):
+        ref = propagation.propagate(injected, 6, capture_outflow=True, angular="dom", **kw)
+        got = gl.propagate(injected, 6, capture_outflow=True, angular="dom", **kw)
+        assert (got.iterations, got.stopped_early) == (ref.iterations, ref.stopped_early)
+        assert got.remaining_fraction == pytest.approx(ref.remaining_fraction, rel=RTOL)
+        _agree(got.values, ref.values, f"dom capture_outflow {list(kw)}")
+        _agree(got.outflow, ref.outflow, f"dom outflow {list(kw)}")
+    on_gpu = be.inject(g, pos, nrm, flux)
+    res = be.propagate(on_gpu, 4, angular="dom", readback=False, keep_gpu=True)
+    assert res.values is None and isinstance(res.gpu, gl.GLGrid)
+    ref = propagation.propagate(injected, 4, angular="dom")
+    _agree(res.gpu.read(), ref.values, "dom inject -> propagate on the GPU")
+    recv = g.origin_array + rng.uniform(0.0, r, (500, 3)) * g.cell_size
+    rn = rng.normal(size=(500, 3))
+    rn /= np.linalg.norm(rn, axis=1, keepdims=True)
+    _agree(be.irradiance(g, res.gpu, recv, rn, angular="dom"),
+           lookup.irradiance(g, ref.values, recv, rn, angular="dom"), "dom lookup of a GLGrid")
+    on_gpu.release()
+    res.gpu.release()
+    assert be.fallbacks == before
+    with pytest.raises(ValueError, match="dom"):
+        propagation.step(injected, angular="dom")
+    with pytest.raises(ValueError, match="dom"):
+        gl.step(injected, angular="dom")
