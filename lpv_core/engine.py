@@ -107,9 +107,12 @@ class Engine:
                 gl = self._gl_backend()
             except Exception:  # noqa: BLE001 - no usable GL context: auto falls back to numpy
                 gl = None
+            t0 = time.perf_counter()
             be, choice = gl_backend.auto_select(gl, NUMPY_BACKEND,
                                                 getattr(settings, "angular", "sh"))
             if stats is not None:
+                # The first call per process and model measures both backends (~1-2 s).
+                stats.add_ms("backend_choice", time.perf_counter() - t0)
                 stats.info["backend_auto"] = dict(choice)
                 stats.info["backend"] = be.name
             return be
