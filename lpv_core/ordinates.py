@@ -138,13 +138,14 @@ def advance(flat: np.ndarray, factor_table: list) -> np.ndarray:
 
     ``flat`` (q, 3, (R + 2)^3) holds light in the interior only; the result holds the arrivals,
     those that left the grid in the shell (take_shell). ``factor_table``: ``factors`` for this
-    grid and visibility. Only the flat range of cells holding light is read."""
+    grid and visibility. Per octant only the flat range of cells holding its light is read
+    (light reflected by a lit floor alone never travels down: half the octants stay empty)."""
     out = np.zeros_like(flat)
-    live = np.flatnonzero(flat.any(axis=(0, 1)))
-    if live.size == 0:
-        return out
-    lo, hi = int(live[0]), int(live[-1]) + 1
     for sl, row in factor_table:
+        live = np.flatnonzero(flat[sl].any(axis=(0, 1)))
+        if live.size == 0:
+            continue
+        lo, hi = int(live[0]), int(live[-1]) + 1
         src = flat[sl, :, lo:hi]
         buf = np.empty_like(src)
         for shift, weight in row:
