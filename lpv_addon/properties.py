@@ -25,8 +25,8 @@ PRESETS = {
         "grid_resolution": 12, "rsm_resolution": 128, "iterations": 0, "cascades": 1}),
     "PREVIEW": ("Preview", "16^3 grid, 256^2 RSM: the default (Cornell box indirect error 0.22)", {
         "grid_resolution": 16, "rsm_resolution": 256, "iterations": 0, "cascades": 1}),
-    "HIGH": ("High", "24^3 grid, 512^2 RSM: 3-15x Preview's time; finer cells, less error "
-             "(Cornell box 0.19, point-lit room 0.15)", {
+    "HIGH": ("High", ("24^3 grid, 512^2 RSM: 3-15x Preview's time; finer cells, less error "
+                      "(Cornell box 0.19, point-lit room 0.15)"), {
         "grid_resolution": 24, "rsm_resolution": 512, "iterations": 0, "cascades": 1}),
 }
 _APPLYING_PRESET = [False]
