@@ -6,9 +6,13 @@
 Prints one JSON object (--json) or a table. Times are medians over the repeats, measured in one
 run on this machine; compare ratios, not absolute numbers, across machines.
 
+The Cornell box runs the default settings (GISettings(): the "dom" transport, propagated to
+convergence); ``angular`` in the output names the model.
+
 ``--sweep`` adds the scaling sweep of bench_sweep.py (grids 16^3-64^3, 1-4 cascades, RSM
 64^2-512^2, 1k-1M triangles, 1-16 lights, numpy and gl backends, cost-growth exponents, a
-roofline of the propagation step and the 1280x720 lookup) under the key "sweep";
+roofline of the dense propagation step of each transport model (dom, m1, sh) and the 1280x720
+lookup) under the key "sweep";
 ``--sweep-quick`` a tiny version of it (for tests); ``--sweep-only`` skips the Cornell box
 figures. See docs/benchmarks.md.
 """
@@ -54,6 +58,9 @@ def run(repeat: int, resolution: tuple[int, int], settings: GISettings) -> dict:
         "repeat": repeat,
         "settings": settings.as_dict(),
         "backend": settings.backend,
+        "angular": settings.angular,
+        # what "auto" chose per stage on this run (measured once per process)
+        "backend_used": result.stats.info.get("backend") if result else None,
         "median_ms": medians,
         "full_update_ms": medians.get("lpv_update", 0.0),
         "iterations": result.stats.info.get("iterations") if result else None,

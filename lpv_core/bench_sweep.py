@@ -7,23 +7,28 @@ printed except by :func:`table`.
 What is measured, and why this way:
 
 * **Engine sweep** (:func:`engine_sweep`): one factor at a time around a base configuration,
-  ``Engine.update`` + ``deferred.render`` on the demo Cornell box, for each backend; the medians
-  of ``Stats.ms`` per stage. Propagation runs a *fixed, small* number of steps
-  (``settings.iterations``) instead of running to convergence (m1 converges after up to 3 R
-  steps: minutes per update on 64^3 here), so the figures are per-step costs, not the cost of a
-  converged update; ``propagation_per_step_ms`` divides by the steps actually run.
+  ``Engine.update`` + ``deferred.render`` on the demo Cornell box, for each backend, with the
+  default transport model (``GISettings.angular``, "dom"); the medians of ``Stats.ms`` per
+  stage. Propagation runs a *fixed, small* number of steps (``settings.iterations``) instead
+  of running to convergence (dom and m1 run up to 3 R steps: minutes per update on 64^3
+  here), so the figures are per-step costs, not the cost of a converged update;
+  ``propagation_per_step_ms`` divides by the steps actually run (for dom it includes the
+  once-per-propagation unfold and fold, spread over those steps).
   Triangle counts are scaled by subdividing every demo triangle into k^2 (same scene, same
   lighting, only the cost changes); lights by replicating the demo spot light.
-* **Propagation microbenchmark** (:func:`propagation_sweep`): ``step`` on a *dense* grid (every
-  cell lit, with visibility), per backend and angular model. The engine's early steps are
-  sparse (the m1 step skips empty cells), so this is the worst case and the one the roofline
-  applies to.
+* **Propagation microbenchmark** (:func:`propagation_sweep`): one step on a *dense* grid (every
+  cell lit, with visibility; dom also without), per backend and angular model: ``step`` for m1
+  and sh, one step of ``propagation._propagate_ordinates``' loop for dom (:func:`dom_step`:
+  ``ordinates.advance``, the shell, the accumulation and the flux sum). The engine's early
+  steps are sparse (m1 and dom skip the cells without light), so this is the worst case and
+  the one the roofline applies to.
 * **Machine limits** (:func:`machine_limits`): float32 GFLOP/s of a large numpy matmul and
   memory bandwidth of a large array copy, measured in the same run.
 * **Roofline** (:func:`roofline`): FLOPs and bytes of one propagation step counted from the
   algorithm (:func:`step_counts`), time at the machine's limit vs time measured.
 * **Lookup** (:func:`lookup_bench`): ``backend.irradiance`` on a 1280x720 G-buffer's worth of
-  points (921,600) in the grid, per backend and angular model.
+  points (921,600) in the grid, per backend and angular model (dom and m1 read the cell the
+  same way, as its maximum-entropy lobe).
 * **Exponents** (:func:`exponents`): least-squares slope of log(time) vs log(size) per series.
 
 A combination that cannot run (no GL context, an exception) is recorded with its reason
@@ -39,11 +44,15 @@ import traceback
 
 import numpy as np
 
-from . import deferred, demo, engine, propagation
+from . import deferred, demo, engine, ordinates, propagation
 from .grid import Grid
 from .scene import GISettings, make_scene
 
 BACKENDS = ("numpy", "gl")
+# Transport models swept, the default first ("dom"); m1 and sh for comparison.
+ANGULARS = ("dom", "m1", "sh")
+# The model the engine sweep runs: the add-on's default.
+ENGINE_ANGULAR = GISettings().angular
 
 # Full sweep: the ranges issue 6 asks for. Quick: the same shape, tiny, for tests.
 FULL = {
@@ -55,6 +64,7 @@ FULL = {
     "base": {"grid_resolution": 16, "cascades": 1, "rsm_resolution": 128, "triangles": 34,
              "lights": 1},
     "iterations": 2,  # fixed propagation steps per update (not convergence, see module doc)
+    "angular": ENGINE_ANGULAR,
     "direction_groups": 1,
     "render": (128, 96),
     "shadow_resolution": 512,
@@ -75,6 +85,7 @@ QUICK = {
     "base": {"grid_resolution": 8, "cascades": 1, "rsm_resolution": 32, "triangles": 34,
              "lights": 1},
     "iterations": 1,
+    "angular": ENGINE_ANGULAR,
     "direction_groups": 1,
     "render": (32, 24),
     "shadow_resolution": 128,
@@ -196,6 +207,7 @@ def engine_sweep(cfg: dict, backends=BACKENDS) -> dict:
                 settings = GISettings(grid_resolution=p["grid_resolution"],
                                       cascades=p["cascades"], rsm_resolution=p["rsm_resolution"],
                                       iterations=cfg["iterations"],
+                                      angular=cfg.get("angular", ENGINE_ANGULAR),
                                       direction_groups=cfg["direction_groups"],
                                       shadow_resolution=cfg["shadow_resolution"], backend=name)
                 try:
@@ -242,7 +254,8 @@ def machine_limits(matmul_n: int = 2048, copy_mb: int = 256, repeat: int = 5) ->
 def step_counts(resolution: int, angular: str = "m1", visibility: bool = True) -> dict:
     """FLOPs and bytes of one propagation step on a dense (all cells lit) R^3 grid.
 
-    Counted from the algorithm (propagation.step / step_m1), per cell and colour (row):
+    Counted from the algorithm (propagation.step / step_m1 / ordinates.advance), per cell and
+    colour (row):
 
     * m1: moments (~30), kappa (~6), <d, w_q> for 64 bundle directions (2 x 3 x 64), kappa x
       that and exp (2 x 64; exp counted as one FLOP), normalisation (64 + 2), bundle -> 27
@@ -250,16 +263,35 @@ def step_counts(resolution: int, angular: str = "m1", visibility: bool = True) -
       (108 multiplies + 108 adds) and the visibility products per offset (~54 per cell);
     * sh: 30 face evaluations (2 x 4 x 30), clamp / sum / rescale (~95), six 5 -> 4
       re-projections (6 x 2 x 5 x 4), visibility (24) and the shift-adds (24).
+    * dom: one step of propagation._propagate_ordinates' loop (:func:`dom_step`) on the padded
+      flat layout ((R + 2)^3 cells of q = 64 directions x 3 colours): the advection, 64
+      directions x 8 neighbour offsets x (1 multiply by weight x transmittance + 1 add) over
+      the flat range of cells holding light (for a dense grid (R - 1)((R+2)^2 + (R+2) + 1) + 1
+      cells, ~(1 + 2/R)^2 R^3: the padding rows in between are multiplied too), then over
+      all (R + 2)^3 cells 1 compare each for the live-range scan (``any``), 1 add for
+      ``acc += cur`` and 1 for the float64 flux sum. The shell is emptied (stores, no FLOPs;
+      the microbenchmark captures no outflow). Visibility costs no FLOPs per step: the
+      weight x transmittance tables are made once per propagation (ordinates.factors).
+      Per cell: 3 x (1024 x live / R^3 + 192 x (R + 2)^3 / R^3), 4.7k at 16^3, 4.2k at 32^3
+      (3.6k as R grows: 3 x (1024 + 192)).
 
-    ``bytes`` is the compulsory traffic: read the grid (48 B/cell) and visibility (24 B/cell),
-    write the result (48 B/cell). ``bytes_materialised`` estimates what the numpy code moves
-    through the arrays it materialises (each written once and read once), which is what its
-    memory roof really is.
+    ``bytes`` is the compulsory traffic: m1 and sh read the grid (48 B/cell) and visibility
+    (24 B/cell) and write the result (48 B/cell); dom reads the flux (q x 3 x 4 = 768 B/cell)
+    and the visibility (24 B/cell), writes the arrivals (768 B/cell) and reads and writes the
+    accumulated flux (2 x 768 B/cell), since its timed step includes the accumulation.
+    ``bytes_materialised`` estimates what the numpy code moves through the arrays it
+    materialises (each written once and read once), which is what its memory roof really is;
+    for dom, per (direction, offset) and live cell: the multiply reads the source and the
+    weight x transmittance (4 B, with visibility) and writes a buffer, the add reads the
+    destination and the buffer and writes the destination (5 x 12 B + 4 B); plus per padded
+    cell the zeroed output (768 B), the scan (768 B + 1), ``acc += cur`` (3 x 768 B), the sum
+    (768 B) and the emptied shell (6 (R + 2)^2 cells x 768 B).
     """
     cells = resolution**3
     rows = 3 * cells
     q, k = propagation.M1_DIRECTIONS, len(propagation.OFFSETS)
     vis = 1 if visibility else 0
+    extra = {}
     if angular == "m1":
         per_row = 30 + 6 + 2 * 3 * q + 2 * q + q + 2 + 2 * q * 4 * k + 4 * k + 4 * k * (1 + vis)
         flops = rows * per_row + cells * 54 * vis
@@ -268,6 +300,7 @@ def step_counts(resolution: int, angular: str = "m1", visibility: bool = True) -
         # slice read, visibility product, += into out: ~6 x 16 B).
         per_row_bytes = 16 + 36 + 4 * q * 4 * 2 + 4 * (4 * k) * 4 * 2 + k * 6 * 16
         materialised = rows * per_row_bytes + cells * k * 4 * 3 * vis
+        compulsory = cells * (48 + 24 * vis + 48)
     elif angular == "sh":
         per_row = 2 * 4 * 30 + 95 + 6 * 2 * 5 * 4 + 24 * vis + 24
         flops = rows * per_row
@@ -275,12 +308,27 @@ def step_counts(resolution: int, angular: str = "m1", visibility: bool = True) -
         # (out 16 B, visibility product, shift-add: ~5 x 16 B each).
         per_row_bytes = 16 + 120 * 4 * 2 + 6 * 5 * 16
         materialised = rows * per_row_bytes + cells * 24 * vis
+        compulsory = cells * (48 + 24 * vis + 48)
+    elif angular == "dom":
+        _, _, groups = ordinates.tables()
+        qd, c = ordinates.DIRECTIONS, 3
+        pairs = sum((sl.stop - sl.start) * len(row) for sl, row in groups)  # 64 x 8
+        p = resolution + 2
+        padded = p**3
+        # flat index range [lo, hi) of a dense interior: cell (1, 1, 1) to (R, R, R)
+        live = (resolution - 1) * (p * p + p + 1) + 1
+        flops = 2 * c * pairs * live + 3 * qd * c * padded
+        state = 4 * qd * c  # bytes of one cell's flux
+        materialised = (pairs * live * (5 * 4 * c + 4 * vis)
+                        + padded * (state + state + 1 + 3 * state + state)
+                        + 6 * p * p * state)
+        compulsory = cells * (4 * state + 24 * vis)
+        extra = {"direction_offset_pairs": pairs, "padded_cells": padded, "live_cells": live}
     else:
-        raise ValueError(f"angular must be 'm1' or 'sh', not {angular!r}")
-    compulsory = cells * (48 + 24 * vis + 48)
+        raise ValueError(f"angular must be one of {ANGULARS}, not {angular!r}")
     return {"flops": float(flops), "bytes": float(compulsory),
             "bytes_materialised": float(materialised), "cells": cells,
-            "flops_per_cell": flops / cells}
+            "flops_per_cell": flops / cells, **extra}
 
 
 def roofline(step_ms: float, counts: dict, limits: dict) -> dict:
@@ -325,27 +373,67 @@ def _gl_backend():
         return None, f"no GL backend: {type(exc).__name__}: {exc}"
 
 
+def _dense_dom(r: int, rng) -> np.ndarray:
+    """A dense dom state: the padded flat layout (q, 3, (R + 2)^3) with every interior cell
+    holding flux along every direction (random, [0.5, 1) / q), the shell empty."""
+    q = ordinates.DIRECTIONS
+    flux = (rng.random((q, 3, r, r, r), dtype=np.float32) * 0.5 + 0.5) / q
+    return ordinates.pad(flux)
+
+
+def dom_step(cur: np.ndarray, acc: np.ndarray, table: list, r: int) -> tuple[np.ndarray, float]:
+    """One step of propagation._propagate_ordinates' loop on the padded flat layout: advance
+    every direction one cell (ordinates.advance), empty the shell (what left the grid; no
+    outflow kept), accumulate, and sum the moved flux in float64 (the early-stop test).
+    Returns the new state and the moved flux."""
+    nxt = ordinates.advance(cur, table)
+    ordinates.take_shell(nxt, r)
+    acc += nxt
+    return nxt, float(nxt.sum(dtype=np.float64))
+
+
+def _cases(angulars):
+    """(angular, visibility) per dense row: every model with visibility, dom also without
+    (its visibility is a per-propagation weight x transmittance table, not per-step work)."""
+    return [(a, v) for a in angulars for v in ((True, False) if a == "dom" else (True,))]
+
+
 def propagation_sweep(sizes, steps: int, repeat: int, limits: dict,
-                      angulars=("m1", "sh"), backends=BACKENDS) -> list[dict]:
+                      angulars=ANGULARS, backends=BACKENDS) -> list[dict]:
     """Median ms per step of ``steps`` fixed steps on dense grids, with the roofline of each.
 
-    numpy: ``propagation.step`` called ``steps`` times; gl: ``GLBackend.propagate`` with
-    ``min_fraction=0`` and no readback (the grid stays on the GPU, as between steps).
+    numpy: ``propagation.step`` (m1, sh) or :func:`dom_step` (dom, on a dense random flux
+    state, every direction lit) called ``steps`` times; gl: ``GLBackend.propagate`` with
+    ``min_fraction=0`` and no readback (the grid stays on the GPU, as between steps). A gl
+    dom propagation unfolds and folds once per call: its step is (time of ``steps`` steps -
+    time of 0 steps) / ``steps``, the fixed part recorded as ``unfold_fold_ms``.
     """
     rng = np.random.default_rng(1)
     gl, gl_reason = _gl_backend() if "gl" in backends else (None, None)
     rows = []
     for r in sizes:
         values, vis = _dense_grid(r, rng)
-        for angular in angulars:
-            counts = step_counts(r, angular)
+        for angular, use_vis in _cases(angulars):
+            counts = step_counts(r, angular, use_vis)
+            step_vis = vis if use_vis else None
             for name in backends:
                 row = {"backend": name, "angular": angular, "resolution": r, "cells": r**3,
-                       "steps": steps, "flops": counts["flops"], "bytes": counts["bytes"]}
+                       "visibility": use_vis, "steps": steps, "flops": counts["flops"],
+                       "bytes": counts["bytes"]}
                 rows.append(row)
                 try:
-                    if name == "numpy":
-                        def run(v=values, a=angular, vv=vis):
+                    if name == "numpy" and angular == "dom":
+                        state = _dense_dom(r, rng)
+                        table = ordinates.factors(
+                            r, propagation._offset_visibilities(step_vis))
+                        acc = np.zeros_like(state)
+
+                        def run(v=state, t=table, a=acc, rr=r):
+                            cur = v
+                            for _ in range(steps):
+                                cur, _moved = dom_step(cur, a, t, rr)
+                    elif name == "numpy":
+                        def run(v=values, a=angular, vv=step_vis):
                             cur = v
                             for _ in range(steps):
                                 cur = propagation.step(cur, vv, angular=a)
@@ -355,12 +443,24 @@ def propagation_sweep(sizes, steps: int, repeat: int, limits: dict,
                             continue
                         on_gpu = gl.upload(values)
 
-                        def run(g=on_gpu, a=angular, vv=vis):
-                            gl.propagate(g, steps, min_fraction=0.0, visibility=vv,
+                        def run(g=on_gpu, a=angular, vv=step_vis, n=steps):
+                            gl.propagate(g, n, min_fraction=0.0, visibility=vv,
                                          angular=a, occlude_first_step=True, readback=False)
+                    fallbacks0 = getattr(gl, "fallbacks", 0)
                     sec = _median_s(run, repeat)
+                    if name == "gl" and angular == "dom":
+                        fixed = _median_s(lambda: run(n=0), repeat)
+                        row["unfold_fold_ms"] = fixed * 1000.0
+                        row["propagate_ms"] = sec * 1000.0
+                        sec = sec - fixed
+                        if sec <= 0:
+                            raise RuntimeError("steps not measurable over the unfold/fold "
+                                               f"({row['propagate_ms']:.1f} ms vs "
+                                               f"{row['unfold_fold_ms']:.1f} ms)")
                     if name == "gl":
                         on_gpu.release()
+                        if gl.fallbacks > fallbacks0:
+                            row["numpy_fallbacks"] = gl.fallbacks - fallbacks0
                     row["step_ms"] = sec * 1000.0 / steps
                     row["roofline"] = roofline(row["step_ms"], counts, limits)
                 except Exception as exc:  # noqa: BLE001 - recorded, the sweep goes on
@@ -368,7 +468,7 @@ def propagation_sweep(sizes, steps: int, repeat: int, limits: dict,
     return rows
 
 
-def lookup_bench(points: int, resolution: int, repeat: int, angulars=("m1", "sh"),
+def lookup_bench(points: int, resolution: int, repeat: int, angulars=ANGULARS,
                  backends=BACKENDS) -> list[dict]:
     """Median ms of ``backend.irradiance`` on ``points`` receivers (a 1280x720 G-buffer is
     921,600), on a propagated grid with occlusion visibility, as deferred.render calls it."""
@@ -447,13 +547,15 @@ def exponents(engine_out: dict, prop_rows: list[dict]) -> dict:
             xs = [size(c) for c in cases]
             ys = [c["median_ms"].get(stage) for c in cases]
             fits.setdefault(name, {})[backend] = fit_exponent(xs, ys)
-    for angular in ("m1", "sh"):
+    for angular, use_vis in _cases(ANGULARS):
+        if not any(r["angular"] == angular and r.get("visibility", True) == use_vis
+                   for r in prop_rows):
+            continue
+        name = f"dense {angular} step vs cells" + ("" if use_vis else " (no visibility)")
         for backend in BACKENDS:
             rows = [r for r in prop_rows if r["backend"] == backend and r["angular"] == angular
-                    and "step_ms" in r]
-            if not any(r["angular"] == angular for r in prop_rows):
-                continue
-            fits.setdefault(f"dense {angular} step vs cells", {})[backend] = fit_exponent(
+                    and r.get("visibility", True) == use_vis and "step_ms" in r]
+            fits.setdefault(name, {})[backend] = fit_exponent(
                 [r["cells"] for r in rows], [r["step_ms"] for r in rows])
     return fits
 
@@ -477,22 +579,27 @@ def run_sweep(quick: bool = False, backends=BACKENDS) -> dict:
                 bandwidth_gbs=max(limits["bandwidth_gbs"], limits_after["bandwidth_gbs"]))
     for row in prop:
         if "step_ms" in row:
-            row["roofline"] = roofline(row["step_ms"], step_counts(row["resolution"],
-                                                                   row["angular"]), best)
+            row["roofline"] = roofline(row["step_ms"], step_counts(
+                row["resolution"], row["angular"], row.get("visibility", True)), best)
     gl, _ = _gl_backend()
     return {
         "quick": quick,
         "config": {k: (list(v) if isinstance(v, tuple) else v) for k, v in cfg.items()},
         "notes": [
-            (f"propagation runs a fixed {cfg['iterations']} step(s) per update "
+            (f"engine: angular = {cfg.get('angular', ENGINE_ANGULAR)!r} (the default); "
+             f"propagation runs a fixed {cfg['iterations']} step(s) per update "
              f"(settings.iterations), not to convergence; direction_groups = "
-             f"{cfg['direction_groups']}: figures are per-step costs"),
+             f"{cfg['direction_groups']}: figures are per-step costs"
+             + (" (dom: including its once-per-propagation unfold and fold)"
+                if cfg.get("angular", ENGINE_ANGULAR) == "dom" else "")),
             "one factor varied at a time around config.base",
             "triangle counts: demo Cornell box triangles each subdivided into k^2",
             ("numpy_fallbacks > 0 on a gl case: that many backend calls ran the numpy code "
              "(e.g. propagation of inner cascades, capture_outflow, is not ported to GL)"),
-            (f"dense propagation: every cell lit, visibility on, {cfg['prop_steps']} step(s) "
-             "timed per run"),
+            (f"dense propagation: every cell lit, visibility on (dom also off), "
+             f"{cfg['prop_steps']} step(s) timed per run; dom: one step of the propagation "
+             "loop (advance, shell, accumulation, flux sum) on the padded flat layout, gl dom: "
+             "(propagate(steps) - propagate(0)) / steps, without the unfold and fold"),
             ("roofline: float32 matmul GFLOP/s and array-copy GB/s measured in this run "
              "(before and after the sweep; the better of the two is the limit)"),
         ],
@@ -510,8 +617,9 @@ def run_sweep(quick: bool = False, backends=BACKENDS) -> dict:
 
 # -- table --------------------------------------------------------------------------------------
 
-TABLE_STAGES = ("planner", "rsm", "injection", "propagation", "propagation_per_step", "geometry_volume",
-                "upload", "combine", "lpv_update", "gbuffer", "direct", "lookup", "total")
+TABLE_STAGES = ("planner", "rsm", "injection", "propagation", "propagation_per_step",
+                "geometry_volume", "upload", "combine", "lpv_update", "gbuffer", "direct",
+                "lookup", "total")
 
 
 def table(sweep: dict) -> str:
@@ -541,18 +649,20 @@ def table(sweep: dict) -> str:
                                    if c.get("numpy_fallbacks") else "")
             lines.append(f"| {label} | {name} | " + " | ".join(cells) + " |")
         lines.append("")
-    lines += ["Dense propagation step (every cell lit, visibility on) and roofline", "",
+    lines += [("Dense propagation step (every cell lit, visibility on unless 'no vis') and "
+               "roofline"), "",
               ("| backend | model | grid | ms/step | GFLOP/step | GFLOP/s | flop frac | GB/s "
                "| bw frac | bw frac (materialised) | roofline frac | bound |"),
               "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in sweep["propagation"]:
+        model = r["angular"] + ("" if r.get("visibility", True) else ", no vis")
         if "step_ms" not in r:
-            lines.append(f"| {r['backend']} | {r['angular']} | {r['resolution']}^3 | "
+            lines.append(f"| {r['backend']} | {model} | {r['resolution']}^3 | "
                          f"skipped: {r.get('skipped')} |")
             continue
         rf = r["roofline"]
         lines.append(
-            f"| {r['backend']} | {r['angular']} | {r['resolution']}^3 | {r['step_ms']:.2f} | "
+            f"| {r['backend']} | {model} | {r['resolution']}^3 | {r['step_ms']:.2f} | "
             f"{r['flops'] / 1e9:.3f} | {rf['achieved_gflops']:.2f} | {rf['flop_fraction']:.3f} | "
             f"{rf['achieved_gbs']:.2f} | {rf['bandwidth_fraction']:.4f} | "
             f"{rf['bandwidth_fraction_materialised']:.3f} | {rf['roofline_fraction']:.3f} | "

@@ -15,6 +15,7 @@ import pytest
 from conftest import ROOT
 
 from lpv_core import bench_sweep
+from lpv_core.scene import GISettings
 
 QUICK_KEYS = ("full_update_ms", "light_intensity_tweak_ms", "one_light_moved_ms",
               "camera_in_cell_ms")
@@ -38,12 +39,15 @@ def test_quick_json_keys(quick_json):
     for key in QUICK_KEYS:
         assert _finite_positive(quick_json[key]), key
     assert quick_json["backend"] in ("numpy", "gl", "auto")
+    assert quick_json["angular"] == quick_json["settings"]["angular"] == GISettings().angular
+    assert isinstance(quick_json["backend_used"], str) and quick_json["backend_used"]
     assert all(math.isfinite(v) and v >= 0 for v in quick_json["median_ms"].values())
 
 
 def test_sweep_has_every_value(quick_json):
     sweep = quick_json["sweep"]
     assert sweep["quick"] is True
+    assert sweep["config"]["angular"] == bench_sweep.ENGINE_ANGULAR == GISettings().angular
     for dim in bench_sweep.DIMENSIONS:
         cases = sweep["engine"][dim]
         for backend in bench_sweep.BACKENDS:
@@ -75,7 +79,9 @@ def test_exponents_fitted_from_three_points(quick_json):
     fits = quick_json["sweep"]["exponents"]
     for name, *_ in bench_sweep.ENGINE_FITS:
         assert name in fits
-    assert "dense m1 step vs cells" in fits and "dense sh step vs cells" in fits
+    for angular in bench_sweep.ANGULARS:
+        assert f"dense {angular} step vs cells" in fits, angular
+    assert "dense dom step vs cells (no visibility)" in fits
     for name, per in fits.items():
         fit = per["numpy"]
         assert fit["points"] >= 3, name
@@ -91,8 +97,11 @@ def test_roofline_ratios(quick_json):
     assert _finite_positive(limits["gflops"]) and _finite_positive(limits["bandwidth_gbs"])
     rows = sweep["propagation"]
     sizes = bench_sweep.QUICK["prop_sizes"]
-    assert {(r["backend"], r["angular"], r["resolution"]) for r in rows} == {
-        (b, a, s) for b in bench_sweep.BACKENDS for a in ("m1", "sh") for s in sizes}
+    assert bench_sweep.ANGULARS[0] == "dom"  # the default model first
+    cases = [("dom", True), ("dom", False), ("m1", True), ("sh", True)]
+    assert sorted((r["backend"], r["angular"], r["visibility"], r["resolution"]) for r in rows) \
+        == sorted((b, a, v, s) for b in bench_sweep.BACKENDS for a, v in cases for s in sizes)
+    assert all("step_ms" in r for r in rows if r["backend"] == "numpy")  # numpy always runs
     for r in rows:
         if "skipped" in r:
             assert r["backend"] == "gl" and r["skipped"]
@@ -104,12 +113,16 @@ def test_roofline_ratios(quick_json):
         assert rf["roofline_fraction"] == pytest.approx(
             max(rf["flop_fraction"], rf["bandwidth_fraction"]))
         assert rf["roofline_fraction"] <= 1.0 or rf["note"], r
+        counts = bench_sweep.step_counts(r["resolution"], r["angular"], r["visibility"])
+        assert r["flops"] == counts["flops"] and r["bytes"] == counts["bytes"]
+        if r["backend"] == "gl" and r["angular"] == "dom":  # steps timed without unfold/fold
+            assert _finite_positive(r["unfold_fold_ms"]) and _finite_positive(r["propagate_ms"])
 
 
 def test_lookup_rows(quick_json):
     rows = quick_json["sweep"]["lookup"]
     assert {(r["backend"], r["angular"]) for r in rows} == {
-        (b, a) for b in bench_sweep.BACKENDS for a in ("m1", "sh")}
+        (b, a) for b in bench_sweep.BACKENDS for a in bench_sweep.ANGULARS}
     for r in rows:
         assert r["points"] == bench_sweep.QUICK["lookup_points"]
         assert _finite_positive(r["ms"]) if "ms" in r else r["skipped"]
@@ -135,6 +148,51 @@ def test_step_counts_follow_the_algorithm():
     assert bench_sweep.step_counts(16, "m1", visibility=False)["bytes"] == 16**3 * 96
     with pytest.raises(ValueError):
         bench_sweep.step_counts(16, "p1")
+
+
+def test_step_counts_dom_follow_the_algorithm():
+    r, p, q = 16, 18, 64
+    dom = bench_sweep.step_counts(r, "dom")
+    # 64 directions x 8 neighbour offsets, each 1 multiply + 1 add per colour
+    assert dom["direction_offset_pairs"] == q * 8
+    live = (r - 1) * (p * p + p + 1) + 1  # flat range from cell (1, 1, 1) to (R, R, R)
+    assert dom["live_cells"] == live and dom["padded_cells"] == p**3
+    # advection over the live range + scan, accumulation and flux sum over the padded grid
+    assert dom["flops"] == 3 * q * 8 * 2 * live + 3 * q * 3 * p**3
+    assert 3 * 1024 < dom["flops_per_cell"] < 3 * (1024 + 192) * (p / r) ** 3
+    assert dom["flops_per_cell"] < bench_sweep.step_counts(r, "m1")["flops_per_cell"] / 5
+    # compulsory: read the flux, write the arrivals, read + write the accumulation, visibility
+    assert dom["bytes"] == r**3 * (4 * q * 3 * 4 + 24)
+    free = bench_sweep.step_counts(r, "dom", visibility=False)
+    assert free["bytes"] == r**3 * 4 * q * 3 * 4 and free["flops"] == dom["flops"]
+    # the weight x transmittance table is read per (direction, offset, cell) with visibility
+    assert dom["bytes_materialised"] - free["bytes_materialised"] == q * 8 * live * 4
+    assert dom["bytes_materialised"] > 10 * dom["bytes"] > 0
+    # advection flops grow as the live range, ~(1 + 2/R)^2 R^3: per cell they fall with R
+    assert bench_sweep.step_counts(32, "dom")["flops_per_cell"] < dom["flops_per_cell"]
+
+
+def test_dom_step_is_the_propagation_loop():
+    """bench_sweep.dom_step (what the dense dom rows time) is one step of
+    propagation._propagate_ordinates: the same result after the same number of steps."""
+    from lpv_core import ordinates, propagation
+
+    rng = np.random.default_rng(3)
+    r = 6
+    injected = np.zeros((r, r, r, 3, 4), np.float32)
+    injected[2:4, 1:5, 3, :, 0] = 1.0
+    injected[2:4, 1:5, 3, :, 3] = 0.5
+    vis = rng.uniform(0.5, 1.0, (6, r, r, r)).astype(np.float32)
+    ref = propagation.propagate(injected, 3, min_fraction=0.0, visibility=vis, angular="dom",
+                                occlude_first_step=True)
+    cur = ordinates.pad(ordinates.unfold(injected))
+    acc = np.zeros_like(cur)
+    table = ordinates.factors(r, propagation._offset_visibilities(vis))
+    for _ in range(3):
+        cur, moved = bench_sweep.dom_step(cur, acc, table, r)
+    assert moved == pytest.approx(float(cur.sum(dtype=np.float64))) and moved > 0
+    got = ordinates.fold(np.ascontiguousarray(ordinates.interior(acc, r))) + injected
+    np.testing.assert_allclose(got, ref.values, rtol=1e-5, atol=1e-7)
 
 
 def test_roofline_notes_a_step_faster_than_the_limit():
