@@ -64,15 +64,20 @@ def tables(q: int | None = None):
 
 def unfold(values: np.ndarray) -> np.ndarray:
     """(R, R, R, 3, 4) injected moments -> (q, 3, R, R, R) flux per direction, read as light
-    just emitted by diffuse surfaces (closure.emission_density); the flux is kept exactly."""
+    just emitted by diffuse surfaces (closure.emission_density); the flux is kept exactly.
+    Only cells holding light are evaluated (most of a grid is empty)."""
     dirs, _, _ = tables()
     shape = values.shape[:3]
     cells = np.ascontiguousarray(values.transpose(3, 0, 1, 2, 4), dtype=np.float32)
-    held, mean_cos, d = closure.moments(cells.reshape(-1, 4))
-    w = closure.emission_density(mean_cos[None, :], dirs @ d.T).astype(np.float32)
-    w = np.where(w.sum(axis=0) > 0, w, np.float32(1.0))
-    w *= (held / w.sum(axis=0)).astype(np.float32)[None, :]
-    return w.reshape(len(dirs), 3, *shape)
+    cells = cells.reshape(-1, 4)
+    out = np.zeros((len(dirs), cells.shape[0]), np.float32)
+    lit = np.flatnonzero(cells[:, 0] > 0)
+    if lit.size:
+        held, mean_cos, d = closure.moments(cells[lit])
+        w = closure.emission_density(mean_cos[None, :], dirs @ d.T).astype(np.float32)
+        w = np.where(w.sum(axis=0) > 0, w, np.float32(1.0))
+        out[:, lit] = w * (held / w.sum(axis=0)).astype(np.float32)[None, :]
+    return out.reshape(len(dirs), 3, *shape)
 
 
 def fold(flux: np.ndarray) -> np.ndarray:
