@@ -287,7 +287,10 @@ class Engine:
             self._cache[light.name] = (light_key(light), totals, sample, None)
             return totals, sample, 0
         planner.record(reach[:-1], stats, "injection")
-        rsm, sample = self._rsm(light, bounds, scene.settings, stats)
+        if light.type == "SUN" and len(chain) > 1:
+            rsm, sample = self._sun_rsm(light, chain, bounds, scene.settings, stats)
+        else:
+            rsm, sample = self._rsm(light, bounds, scene.settings, stats)
         digest = rsm_key(rsm)
         entry = self._cache.get(light.name)
         if cached is not None and entry is not None and entry[3] == digest:
@@ -396,8 +399,27 @@ class Engine:
 
         with Timer(stats, "rsm"):
             rsm = render_rsm(self.raster, light, bounds, settings.rsm_resolution)
-        keep = slice(None, None, max(1, rsm.count // VPL_SAMPLE))
-        return rsm, (rsm.position[keep].astype(np.float32), rsm.flux[keep].astype(np.float32))
+        return rsm, _vpl_sample(rsm)
+
+    def _sun_rsm(self, light, chain: list, bounds, settings, stats: Stats):
+        """A sun's VPLs with one RSM fitted to each cascade [KD10 sec. 4.1]: each cascade
+        takes the VPLs of its own region (cascades.assign) from its own RSM, so the texels are
+        as fine as its cells wherever it is the finest cascade, at the same RSM resolution."""
+        from .rsm import RSM, render_rsm
+
+        parts = []
+        with Timer(stats, "rsm"):
+            for c, g in enumerate(chain):
+                fit = None if c == len(chain) - 1 else g.bounds()
+                part = render_rsm(self.raster, light, bounds, settings.rsm_resolution, fit)
+                own = cascades.assign(chain, part.position) == c
+                parts.append((part, own))
+        rsm = RSM(light, *(np.concatenate([getattr(p, f)[own] for p, own in parts])
+                           for f in ("position", "normal", "flux", "area")),
+                  sum(p.texels for p, _ in parts))
+        stats.info.setdefault("sun_rsm_per_cascade", {})[light.name] = [
+            int(own.sum()) for _, own in parts]
+        return rsm, _vpl_sample(rsm)
 
     def clear_cache(self) -> None:
         """Forget cached grids and shadow maps: the next update recomputes everything."""
@@ -509,6 +531,12 @@ class _ChainRun:
                     totals[c] += prop.values
                 carry = prop.outflow
         return totals
+
+
+def _vpl_sample(rsm) -> tuple[np.ndarray, np.ndarray]:
+    """A subsample of an RSM's VPLs (positions, flux; at most ~VPL_SAMPLE) for debug views."""
+    keep = slice(None, None, max(1, rsm.count // VPL_SAMPLE))
+    return rsm.position[keep].astype(np.float32), rsm.flux[keep].astype(np.float32)
 
 
 def _digest(*parts) -> str:

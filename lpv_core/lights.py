@@ -63,14 +63,20 @@ def intensity(light: Light, directions: np.ndarray) -> np.ndarray:
     raise ValueError(f"light '{light.name}': intensity() is not defined for {light.type}")
 
 
-def light_views(light: Light, bounds: tuple[np.ndarray, np.ndarray]) -> list[LightView]:
-    """The views that cover what ``light`` can illuminate inside the scene ``bounds``."""
+def light_views(light: Light, bounds: tuple[np.ndarray, np.ndarray],
+                fit: tuple[np.ndarray, np.ndarray] | None = None) -> list[LightView]:
+    """The views that cover what ``light`` can illuminate inside the scene ``bounds``.
+
+    ``fit`` (sun only): a box inside ``bounds`` the view's window is fitted to (a cascade
+    [KD10 sec. 4.1]: finer texels where the cells are finer); the depth range still spans
+    ``bounds``, so whatever stands between the sun and the box casts its shadow."""
     lo, hi = (np.asarray(b, np.float64) for b in bounds)
     extent = float(np.linalg.norm(hi - lo))
     if not np.isfinite(extent) or extent <= 0:
         extent = 1.0
     if light.type == "SUN":
-        return [_sun_view(light, lo, hi, extent)]
+        window = None if fit is None else tuple(np.asarray(b, np.float64) for b in fit)
+        return [_sun_view(light, lo, hi, extent, window)]
     pos = light.position
     far_dist = float(np.max(np.linalg.norm(_corners(lo, hi) - pos, axis=1))) * 1.01
     far_dist = max(far_dist, extent * 1e-3)
@@ -89,13 +95,17 @@ def light_views(light: Light, bounds: tuple[np.ndarray, np.ndarray]) -> list[Lig
     return views
 
 
-def _sun_view(light: Light, lo, hi, extent) -> LightView:
+def _sun_view(light: Light, lo, hi, extent, window=None) -> LightView:
     d = light.direction
-    centre = 0.5 * (lo + hi)
-    eye = centre - d * extent
+    w_lo, w_hi = window if window is not None else (lo, hi)
+    centre = 0.5 * (w_lo + w_hi)
+    # Back off along the sun so that every corner of the whole bounds is in front of the eye.
+    back = extent if window is None else float(np.max((_corners(lo, hi) - centre) @ -d)) + extent
+    eye = centre - d * back
     view = look_at_matrix(eye, centre, _any_up(d))
     pts = (view @ np.c_[_corners(lo, hi), np.ones(8)].T).T[:, :3]
-    half = float(np.max(np.abs(pts[:, :2]))) * 1.01
+    fitted = (view @ np.c_[_corners(w_lo, w_hi), np.ones(8)].T).T[:, :3]
+    half = float(np.max(np.abs(fitted[:, :2]))) * 1.01
     half = max(half, extent * 1e-6)
     near = max(float(-pts[:, 2].max()) - extent * 0.01, extent * 1e-6)
     far = float(-pts[:, 2].min()) + extent * 0.01

@@ -37,11 +37,11 @@ class RSM:
 
 
 def render_views(
-    raster: Rasterizer, light: Light, bounds, resolution: int
+    raster: Rasterizer, light: Light, bounds, resolution: int, fit=None
 ) -> list[tuple[lights_mod.LightView, Frame]]:
-    """Rasterise every view of ``light`` at ``resolution`` squared."""
+    """Rasterise every view of ``light`` at ``resolution`` squared (``fit``: light_views)."""
     out = []
-    for view in lights_mod.light_views(light, bounds):
+    for view in lights_mod.light_views(light, bounds, fit):
         frame = raster.render(view.view, view.projection, resolution, resolution, ortho=view.ortho)
         out.append((view, frame))
     return out
@@ -66,12 +66,13 @@ def texel_flux(light: Light, view: lights_mod.LightView, frame: Frame) -> tuple[
     return incident, np.where(frame.covered, area, 0.0)
 
 
-def render_rsm(raster: Rasterizer, light: Light, bounds, resolution: int) -> RSM:
-    """The RSM of ``light``: VPLs for every covered texel that reflects any flux."""
+def render_rsm(raster: Rasterizer, light: Light, bounds, resolution: int, fit=None) -> RSM:
+    """The RSM of ``light``: VPLs for every covered texel that reflects any flux.
+    ``fit`` (sun only): the box the view's window is fitted to (lights.light_views)."""
     pos, nrm, flux, area = [], [], [], []
     texels = 0
     color = np.asarray(light.color, np.float64)
-    for view, frame in render_views(raster, light, bounds, resolution):
+    for view, frame in render_views(raster, light, bounds, resolution, fit):
         incident, surf_area = texel_flux(light, view, frame)
         texels += incident.size
         refl = frame.reflectance.astype(np.float64)

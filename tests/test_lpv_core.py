@@ -465,3 +465,32 @@ def test_shadow_maps_are_reused_until_geometry_or_light_changes():
     fresh = engine.Engine()
     np.testing.assert_array_equal(moved["Diffuse Direct"],
                                   deferred.render(fresh, sc, fresh.update(sc))["Diffuse Direct"])
+
+
+def test_sun_rsm_is_fitted_to_each_cascade():
+    """KD10 sec. 4.1: with cascades a sun gets one RSM per cascade, fitted to it. The inner
+    cascade's region then holds more, finer VPLs carrying the same flux as the single RSM's
+    VPLs there (each texel carries E x its own area), and nothing is counted twice."""
+    from lpv_core import cascades, rsm as rsm_mod
+
+    settings = GISettings(grid_resolution=16, cascades=2, rsm_resolution=128,
+                          shadow_resolution=128)
+    sc = demo.outdoor((32, 24), settings)
+    eng = engine.Engine()
+    stats = engine.Stats()
+    res = eng.update(sc, stats)
+    chain = [g for g, _, _ in res.fine] + [res.grid]
+    assert len(chain) == 2
+    counts = stats.info["sun_rsm_per_cascade"]["Sun"]
+    lo, hi = eng.lpv_bounds(sc)
+    single = rsm_mod.render_rsm(eng.raster, sc.lights[0], (lo, hi), 128)
+    level = cascades.assign(chain, single.position)
+    fitted, _ = eng._sun_rsm(sc.lights[0], chain, (lo, hi), settings, engine.Stats())
+    level_f = cascades.assign(chain, fitted.position)
+    assert [int((level_f == c).sum()) for c in range(2)] == counts
+    inner, inner_f = level == 0, level_f == 0
+    assert inner_f.sum() > 2.5 * inner.sum()  # the inner window is at most half as wide
+    np.testing.assert_allclose(fitted.flux[inner_f].sum(0), single.flux[inner].sum(0),
+                               rtol=0.05)
+    np.testing.assert_allclose(fitted.flux[~inner_f].sum(0), single.flux[~inner].sum(0),
+                               rtol=1e-6)
