@@ -355,7 +355,6 @@ def _propagate_capturing(injected, iterations, min_fraction, visibility, reproje
     return PropagationResult(acc, done, flux(injected), fraction, early, outflow)
 
 
-
 def _propagate_ordinates(injected, iterations, min_fraction, visibility, occlude_first_step,
                          capture_outflow) -> PropagationResult:
     """propagate() with angular="dom" (ordinates.py): the injected lobes are unfolded once into

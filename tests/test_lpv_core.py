@@ -471,7 +471,8 @@ def test_sun_rsm_is_fitted_to_each_cascade():
     """KD10 sec. 4.1: with cascades a sun gets one RSM per cascade, fitted to it. The inner
     cascade's region then holds more, finer VPLs carrying the same flux as the single RSM's
     VPLs there (each texel carries E x its own area), and nothing is counted twice."""
-    from lpv_core import cascades, rsm as rsm_mod
+    from lpv_core import cascades
+    from lpv_core import rsm as rsm_mod
 
     settings = GISettings(grid_resolution=16, cascades=2, rsm_resolution=128,
                           shadow_resolution=128)

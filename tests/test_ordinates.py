@@ -124,3 +124,19 @@ def test_propagate_stops_once_a_step_moves_little_and_never_gains_energy():
 def test_a_single_step_of_moments_is_refused_with_a_pointer():
     with pytest.raises(ValueError, match="propagate"):
         propagation.step(_random_moments(), angular="dom")
+
+
+def test_large_grids_keep_weights_and_transmittances_apart_with_the_same_result(monkeypatch):
+    """Above FACTOR_TABLE_BYTES the weight x transmittance table is not built (memory);
+    the step multiplies by both instead and must give the same light."""
+    values = _random_moments()
+    vis = np.random.default_rng(9).uniform(0.3, 1.0, (6, 8, 8, 8)).astype(np.float32)
+    fused = propagation.propagate(values, 12, min_fraction=0.0, visibility=vis, angular="dom",
+                                  occlude_first_step=True)
+    monkeypatch.setattr(ordinates, "FACTOR_TABLE_BYTES", 0)
+    table = ordinates.factors(8, propagation._offset_visibilities(vis))
+    assert all(v is not None for _, row in table for _, _, v in row)
+    apart = propagation.propagate(values, 12, min_fraction=0.0, visibility=vis, angular="dom",
+                                  occlude_first_step=True)
+    np.testing.assert_allclose(apart.values, fused.values, rtol=1e-5,
+                               atol=1e-6 * np.abs(fused.values).max())
