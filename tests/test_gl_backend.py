@@ -284,6 +284,13 @@ def test_engine_backend_choice(gl):
         eng.backend(settings.updated(backend="cuda"))
 
 
+def test_auto_choice_needs_a_clear_margin(gl):
+    """A near tie goes to numpy (the reference); gl is picked where it is clearly faster."""
+    ms = {"inject": {"numpy": 50.0, "gl": 40.0}, "propagate": {"numpy": 90.0, "gl": 30.0},
+          "lookup": {"numpy": 10.0, "gl": 12.0}}
+    assert gl.choose(ms) == {"inject": "numpy", "propagate": "gl", "lookup": "numpy"}
+
+
 def test_options_not_ported_fall_back_to_numpy(gl):
     be = gl.backend()
     g = _grid(8, seed=8)
