@@ -183,7 +183,7 @@ class LiveResult:
     cosine_table: np.ndarray | None = None
     stats: dict = field(default_factory=dict)
     arrived: float = 0.0  # time.monotonic() when it arrived (fade-in start)
-    geometry_key: str = ""
+    recombine_key: str = ""
 
 
 class LiveState:
@@ -255,9 +255,12 @@ def _hash(*arrays) -> str:
 ART_DIRECTION = ("gi_intensity", "gi_color")
 
 
-def geometry_key(scene) -> str:
-    """Hash of everything the per-light propagated grids depend on (not the art direction:
-    light GI intensity and tint and the global intensity only re-combine them)."""
+def recombine_key(scene) -> str:
+    """Hash of everything but the art direction (light GI intensity and tint, the global
+    intensity): equal keys let the add-on re-combine the worker's per-light grids itself.
+    Broader than the engine's cache keys (engine.content_key / light_key), which leave the
+    GI reflectance to the re-rendered RSMs: the add-on cannot render RSMs, so any material
+    change goes to the worker."""
     settings = scene.settings.as_dict()
     settings.pop("intensity", None)
     lights = []
@@ -293,7 +296,7 @@ def _geometry(scene) -> dict:
 def _recombine(scene, key: str, reasons: list[str], t0: float) -> LiveResult | None:
     """Re-weight the cached per-light grids when only art direction changed, else None."""
     cur = STATE.current
-    if cur is None or cur.geometry_key != key or cur.grid is None or cur.fine:
+    if cur is None or cur.recombine_key != key or cur.grid is None or cur.fine:
         return None  # (inner cascades keep no per-light grids: those need the worker)
     weights = {li.name: li for li in scene.lights}
     needed = [li for li in scene.lights
@@ -321,7 +324,7 @@ def _new_result(grid, values, per_light, scene, stats, key, vpl=(None, None), vi
         serial=STATE.serial, grid=grid, values=values, per_light=per_light,
         lights=list(scene.lights), settings=scene.settings, areas=list(scene.areas),
         geometry=_geometry(scene), vpl_position=vpl[0], vpl_flux=vpl[1], visibility=visibility,
-        cosine_table=cosine_table, stats=stats, arrived=time.monotonic(), geometry_key=key,
+        cosine_table=cosine_table, stats=stats, arrived=time.monotonic(), recombine_key=key,
         fine=list(fine or []),
     )
 
@@ -379,7 +382,7 @@ def refresh(scene: bpy.types.Scene, depsgraph=None, wait: bool = False,
     t0 = time.perf_counter()
     core_scene = extract(scene, depsgraph, overrides)
     t_extract = (time.perf_counter() - t0) * 1000.0
-    key = geometry_key(core_scene)
+    key = recombine_key(core_scene)
     quick = _recombine(core_scene, key, reasons, t0)
     if quick is not None:
         quick.stats["ms"]["extract"] = t_extract
