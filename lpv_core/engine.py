@@ -201,30 +201,9 @@ class Engine:
             return LPVResult(None, None, {}, stats)
         with Timer(stats, "change_tracking"):
             geo = geometry_key(scene)
-        lo, hi = self.lpv_bounds(scene, stats, geo)
-        focus = None
-        if settings.cascades > 1 and scene.camera is not None:
-            focus = self._focus(scene, stats, geo)
-        chain = self._steady(cascades.place(lo, hi, settings.grid_resolution,
-                                            settings.cascades, scene.camera, focus))
-        if len(chain) == 1 and settings.cascades > 1:
-            stats.skip("cascades", f"{settings.cascades - 1} inner cascades",
-                       "no camera to centre them on")
-        with Timer(stats, "planner"):
-            chain = self._plan_cascades(scene, chain, stats, geo)
+        lo, hi, chain = self._chain(scene, stats, geo)
         grid = chain[-1]
-        stats.info["grid"] = {"origin": list(grid.origin), "cell_size": grid.cell_size,
-                              "resolution": grid.resolution}
-        if len(chain) > 1:
-            stats.info["cascades"] = [{"origin": list(g.origin), "cell_size": g.cell_size}
-                                      for g in chain]
-        active = []
-        for light in scene.lights:
-            reason = _no_gi_reason(light, settings.intensity)
-            if reason:
-                stats.skip("rsm", f"light '{light.name}'", reason)
-            else:
-                active.append(light)
+        active = _active_lights(scene, stats)
         with Timer(stats, "change_tracking"):
             content = content_key(scene, geo)
             key = scene_key(scene, chain, content=content)
@@ -268,6 +247,29 @@ class Engine:
             vpl_count += count
         return self._result(chain, per_light, vpl_sample, active, settings.intensity,
                             visibilities, stats, vpl_count, run.iterations, t0)
+
+    def _chain(self, scene: Scene, stats: Stats, geo: str):
+        """The LPV box (lo, hi) and this update's cascade chain (finest first): placed around
+        what the camera sees, held still within a cell, pruned by the planner."""
+        settings = scene.settings
+        lo, hi = self.lpv_bounds(scene, stats, geo)
+        focus = None
+        if settings.cascades > 1 and scene.camera is not None:
+            focus = self._focus(scene, stats, geo)
+        chain = self._steady(cascades.place(lo, hi, settings.grid_resolution,
+                                            settings.cascades, scene.camera, focus))
+        if len(chain) == 1 and settings.cascades > 1:
+            stats.skip("cascades", f"{settings.cascades - 1} inner cascades",
+                       "no camera to centre them on")
+        with Timer(stats, "planner"):
+            chain = self._plan_cascades(scene, chain, stats, geo)
+        grid = chain[-1]
+        stats.info["grid"] = {"origin": list(grid.origin), "cell_size": grid.cell_size,
+                              "resolution": grid.resolution}
+        if len(chain) > 1:
+            stats.info["cascades"] = [{"origin": list(g.origin), "cell_size": g.cell_size}
+                                      for g in chain]
+        return lo, hi, chain
 
     def _light(self, scene: Scene, light, chain: list, run: _ChainRun, bounds,
                refl_changed: bool, stats: Stats):
@@ -701,6 +703,18 @@ def auto_iterations(resolution: int, angular: str = "sh") -> int:
     if angular in ("m1", "dom"):
         return 3 * resolution
     return max(1, round(resolution / 4))
+
+
+def _active_lights(scene: Scene, stats: Stats) -> list:
+    """The lights that contribute GI; every other one is listed in the stats with why."""
+    active = []
+    for light in scene.lights:
+        reason = _no_gi_reason(light, scene.settings.intensity)
+        if reason:
+            stats.skip("rsm", f"light '{light.name}'", reason)
+        else:
+            active.append(light)
+    return active
 
 
 def _no_gi_reason(light, global_intensity: float) -> str:
