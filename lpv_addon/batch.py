@@ -203,7 +203,11 @@ def render_frames(scene, out: Path, frames, resolution, overrides: dict, quiet: 
             if record["settings"] is None:
                 record["settings"] = lpv_scene.settings.as_dict()
                 _warn_unmodelled(lpv_scene.dropped)
-            result = engine.update(lpv_scene, stats)
+            try:
+                result = engine.update(lpv_scene, stats)
+            except ValueError as exc:  # settings the engine cannot run (e.g. out of memory)
+                print(f"error: frame {frame}: {exc}", file=sys.stderr)
+                return USAGE_ERROR
             passes = core.deferred.render(engine, lpv_scene, result, stats)
             t_w = time.perf_counter()
             core.exr.write_multilayer(out / f"{frame:04d}.exr", passes)

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import areas, cascades, geometry_volume, injection, lookup, planner, propagation
+from . import areas, cascades, geometry_volume, injection, lookup, ordinates, planner, propagation
 from .grid import Grid
 from .scene import Scene
 
@@ -200,6 +200,8 @@ class Engine:
             stats.skip("lpv", "scene", "no geometry")
             stats.ms["lpv_update"] = 0.0
             return LPVResult(None, None, {}, stats)
+        if settings.angular == "dom":  # a clear error before any work, not a MemoryError
+            ordinates.check_memory(settings.grid_resolution, settings.cascades > 1)
         with Timer(stats, "change_tracking"):
             geo = geometry_key(scene)
         lo, hi, chain = self._chain(scene, stats, geo)

@@ -117,6 +117,22 @@ def take_shell(flat: np.ndarray, r: int, into: np.ndarray | None = None) -> None
             grid[sl] = 0.0
 
 
+STATE_BYTES = 4 * 2**30  # the propagation's working arrays may take up to this much memory
+
+
+def check_memory(r: int, capture_outflow: bool = False) -> None:
+    """Raise ValueError (with the figure) when propagating an R^3 grid would need more than
+    STATE_BYTES: the light, the arrivals, the accumulation and a scratch octant, plus the
+    outflow, each 64 x 3 floats per padded cell (4 GB at about 96^3)."""
+    arrays = 4.25 + (1 if capture_outflow else 0)
+    need = arrays * DIRECTIONS * 3 * (r + 2) ** 3 * 4
+    if need > STATE_BYTES:
+        raise ValueError(
+            f"grid_resolution {r} needs about {need / 2**30:.1f} GB for the discrete-ordinates "
+            f"propagation (limit {STATE_BYTES / 2**30:.0f} GB): use a smaller grid, or more "
+            "cascades for a large scene")
+
+
 FACTOR_TABLE_BYTES = 128 * 2**20  # above this (R > ~36), weights and transmittances stay apart
 
 

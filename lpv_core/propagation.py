@@ -362,6 +362,7 @@ def _propagate_ordinates(injected, iterations, min_fraction, visibility, occlude
     and folded back into moments once at the end. What lands in the layout's one-cell shell
     left the grid: with ``capture_outflow`` it is kept as ``outflow`` ((R+2)^3 grid)."""
     r = injected.shape[0]
+    ordinates.check_memory(r, capture_outflow)
     cur = ordinates.pad(ordinates.unfold(injected))
     total0 = float(cur.sum(dtype=np.float64))
     acc = np.zeros_like(cur)

@@ -64,6 +64,7 @@ def test_stats_json_has_the_documented_shape(demo_out):
         (["--demo", "--out", "OUT", "--set", "grid_resolution"], "key=value"),
         (["--demo", "--out", "OUT", "--set", "colour=1"], "unknown GI setting 'colour'"),
         (["--demo", "--out", "OUT", "--set", "occlusion=maybe"], "cannot read 'maybe'"),
+        (["--demo", "--out", "OUT", "--set", "grid_resolution=160"], "grid_resolution 160 needs"),
     ],
 )
 def test_bad_arguments_exit_2_with_one_line(tmp_path, args, message):
