@@ -1,6 +1,10 @@
-"""Light propagation between LPV cells [KD10 sec. 4.3].
+"""Light propagation between LPV cells [KD10 sec. 4.3], three angular models (``angular``):
+"dom" (the default: flux along 64 directions per cell for the whole propagation,
+ordinates.py), "m1" (a maximum-entropy lobe re-read from the moments at every step, step_m1)
+and "sh" (KD10's clamped 2-band SH, below). All of them take and return KD10's grids of
+4 SH coefficients per colour per cell.
 
-Each destination cell gathers from its 6 face neighbours. For a source at -d, light reaches
+"sh": each destination cell gathers from its 6 face neighbours. For a source at -d, light reaches
 the destination's far face (w_eval = w_reproj = d, solid angle 4 atan(sqrt(11)/33)) and its four
 side faces (w_eval from the source centre to the side-face centre, (+-1/sqrt5, 0, 2/sqrt5) in
 d's frame, w_reproj the side face's normal, solid angle 2 atan(3 sqrt(11)/11) - pi/3). The flux
