@@ -216,24 +216,32 @@ void main() {
 # Propagation. The face tables (propagation.tables, float32) are baked into the source as
 # constants, one program per re-projection mode: their many exact zeros then cost nothing (about
 # half the arithmetic of a table lookup, which matters on CPU rasterisers such as llvmpipe).
-_REDUCE_FN = """
-shared vec3 red[64];
-void reduce_flux(vec3 f) {  // per work group sum -> partial[group]
+def _reduce_fn(name: str, gtype: str, out: str, components: int, group: str) -> str:
+    """GLSL ``void name(gtype f)``: sums f over a 64-invocation work group (tree reduction in
+    shared memory) and writes the group's ``components`` sums to ``out[components x g]``,
+    g = ``group`` (an expression of the dispatch's base and the work group id)."""
+    writes = "\n".join(f"        {out}[{components}u * g + {i}u] = red_{name}[0].{'xyzw'[i]};"
+                        for i in range(components))
+    return f"""
+shared {gtype} red_{name}[64];
+void {name}({gtype} f) {{
     uint l = gl_LocalInvocationID.x;
-    red[l] = f;
+    red_{name}[l] = f;
     barrier();
-    for (uint s = 32u; s > 0u; s >>= 1) {
-        if (l < s) red[l] += red[l + s];
+    for (uint s = 32u; s > 0u; s >>= 1) {{
+        if (l < s) red_{name}[l] += red_{name}[l + s];
         barrier();
-    }
-    if (l == 0u) {
-        uint g = base / 64u + gl_WorkGroupID.x;
-        partial[3u * g] = red[0].x;
-        partial[3u * g + 1u] = red[0].y;
-        partial[3u * g + 2u] = red[0].z;
-    }
-}
+    }}
+    if (l == 0u) {{
+        uint g = {group};
+{writes}
+    }}
+}}
 """
+
+
+# Per work group flux sums (vec3) -> partial[3 x group], for the early stop.
+_REDUCE_FN = _reduce_fn("reduce_flux", "vec3", "partial", 3, "base / 64u + gl_WorkGroupID.x")
 
 
 def _lit(x) -> str:
@@ -547,25 +555,8 @@ void main() {
 # float32 (q = 64), ping-pong between two buffers plus the accumulated flux (and, with
 # capture_outflow, the flux that reached the one-cell pad shell). Sums for the early stop are
 # reduced in double precision per work group and finished in float64 on the CPU.
-_DREDUCE_FN = """
-shared dvec4 dred[64];
-void reduce_sums(dvec4 f) {  // per work group sum -> dpartial[4 x (part_base + group)]
-    uint l = gl_LocalInvocationID.x;
-    dred[l] = f;
-    barrier();
-    for (uint s = 32u; s > 0u; s >>= 1) {
-        if (l < s) dred[l] += dred[l + s];
-        barrier();
-    }
-    if (l == 0u) {
-        uint g = part_base + base / 64u + gl_WorkGroupID.x;
-        dpartial[4u * g] = dred[0].x;
-        dpartial[4u * g + 1u] = dred[0].y;
-        dpartial[4u * g + 2u] = dred[0].z;
-        dpartial[4u * g + 3u] = dred[0].w;
-    }
-}
-"""
+_DREDUCE_FN = _reduce_fn("reduce_sums", "dvec4", "dpartial", 4,
+                         "part_base + base / 64u + gl_WorkGroupID.x")
 
 
 def _dom_layout():
