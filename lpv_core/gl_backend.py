@@ -1078,9 +1078,7 @@ class GLBackend:
     def step(self, values, visibility=None, reprojection: str = "kd10",
              angular: str = "sh", emission: bool = False) -> GLGrid:
         """``propagation.step`` on the GPU: the newly arrived intensity as a GLGrid."""
-        if angular == "dom":  # as propagation.step: no step on moments
-            raise ValueError('angular="dom" keeps flux per direction between steps: use '
-                             "propagate() or ordinates.step()")
+        propagation.refuse_single_step(angular)
         if angular not in ("sh", "m1"):
             return self.upload(self._numpy_step(values, visibility, reprojection, angular))
         if angular == "sh":

@@ -236,6 +236,14 @@ def _offset_visibility(visibility: np.ndarray, off) -> np.ndarray:
     return v
 
 
+def refuse_single_step(angular: str) -> None:
+    """ValueError for "dom": a single step of moments is not defined there (the flux stays
+    per direction between steps; every backend's ``step`` says so the same way)."""
+    if angular == "dom":
+        raise ValueError('angular="dom" keeps flux per direction between steps: use '
+                         "propagate() or ordinates.step()")
+
+
 def step(values: np.ndarray, visibility: np.ndarray | None = None,
          reprojection: str = "kd10", angular: str = "sh", emission: bool = False) -> np.ndarray:
     """One propagation step of an (R, R, R, 3, 4) grid; returns the newly arrived intensity.
@@ -245,6 +253,7 @@ def step(values: np.ndarray, visibility: np.ndarray | None = None,
     clamped 2-band SH (KD10); "m1" reads the cell as its maximum-entropy lobe and advects it
     (step_m1; ``reprojection`` unused). "dom" has no step on moments (see propagate).
     """
+    refuse_single_step(angular)
     if angular == "m1":
         return step_m1(values, visibility, emission)
     r = values.shape[0]
@@ -257,9 +266,6 @@ def step(values: np.ndarray, visibility: np.ndarray | None = None,
         with np.errstate(divide="ignore", invalid="ignore"):
             scale = np.where(total > held, held / total, 1.0).astype(np.float32)
         face_flux *= scale[:, None]
-    elif angular == "dom":
-        raise ValueError('angular="dom" keeps flux per direction between steps: use '
-                         "propagate() or ordinates.step()")
     else:
         raise ValueError(f"angular must be one of {ANGULAR_MODELS}, not {angular!r}")
     face_flux = face_flux.reshape(r, r, r, 3, 6, 5)
