@@ -385,11 +385,8 @@ def dom_step(cur: np.ndarray, acc: np.ndarray, table: list, r: int) -> tuple[np.
     """One step of propagation._propagate_ordinates' loop on the padded flat layout: advance
     every direction one cell (ordinates.advance), empty the shell (what left the grid; no
     outflow kept), accumulate, and sum the moved flux in float64 (the early-stop test).
-    Returns the new state and the moved flux."""
-    nxt = ordinates.advance(cur, table)
-    ordinates.take_shell(nxt, r)
-    acc += nxt
-    return nxt, float(nxt.sum(dtype=np.float64))
+    Returns the new state and the moved flux (ordinates.loop_step, the loop's own step)."""
+    return ordinates.loop_step(cur, table, r, acc)
 
 
 def _cases(angulars):

@@ -188,6 +188,17 @@ def advance(flat: np.ndarray, factor_table: list) -> np.ndarray:
     return out
 
 
+def loop_step(flat: np.ndarray, factor_table: list, r: int, acc: np.ndarray,
+              outflow: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+    """One step of the propagation loop (propagation.propagate, angular="dom"): advance,
+    move what left the grid to ``outflow`` (or drop it), add the arrivals to ``acc``.
+    Returns the new light and the flux it holds (float64 sum: the early-stop test)."""
+    nxt = advance(flat, factor_table)
+    take_shell(nxt, r, outflow)
+    acc += nxt
+    return nxt, float(nxt.sum(dtype=np.float64))
+
+
 def step(flux: np.ndarray, offset_visibility: list | None = None) -> np.ndarray:
     """Advect every direction's flux one cell length: (q, 3, R, R, R) -> the same (light that
     would land outside the grid leaves it). ``offset_visibility``: per propagation.OFFSETS

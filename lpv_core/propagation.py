@@ -383,11 +383,10 @@ def _propagate_ordinates(injected, iterations, min_fraction, visibility, occlude
     fraction = 1.0 if total0 > 0 else 0.0
     done, early = 0, total0 <= 0
     for _ in range(0 if early else max(int(iterations), 0)):
-        cur = ordinates.advance(cur, occluded if (done > 0 or occlude_first_step) else free)
-        ordinates.take_shell(cur, r, outflow)
-        acc += cur
+        table = occluded if (done > 0 or occlude_first_step) else free
+        cur, moved = ordinates.loop_step(cur, table, r, acc, outflow)
         done += 1
-        fraction = float(cur.sum(dtype=np.float64)) / total0
+        fraction = moved / total0
         if fraction < min_fraction:
             early = True
             break
