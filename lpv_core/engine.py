@@ -293,7 +293,8 @@ class Engine:
             return totals, sample, 0
         planner.record(reach[:-1], stats, "injection")
         if light.type == "SUN" and len(chain) > 1:
-            rsm, sample = self._sun_rsm(light, chain, bounds, scene.settings, stats)
+            rsm, sample = self._sun_rsm(light, chain, [d.keep for d in reach], bounds,
+                                        scene.settings, stats)
         else:
             rsm, sample = self._rsm(light, bounds, scene.settings, stats)
         digest = rsm_key(rsm)
@@ -406,24 +407,28 @@ class Engine:
             rsm = render_rsm(self.raster, light, bounds, settings.rsm_resolution)
         return rsm, _vpl_sample(rsm)
 
-    def _sun_rsm(self, light, chain: list, bounds, settings, stats: Stats):
+    def _sun_rsm(self, light, chain: list, reach: list, bounds, settings, stats: Stats):
         """A sun's VPLs with one RSM fitted to each cascade [KD10 sec. 4.1]: each cascade
         takes the VPLs of its own region (cascades.assign) from its own RSM, so the texels are
-        as fine as its cells wherever it is the finest cascade, at the same RSM resolution."""
+        as fine as its cells wherever it is the finest cascade, at the same RSM resolution.
+        No RSM for an inner cascade the planner found the sun cannot reach (``reach[c]``)."""
         from .rsm import RSM, render_rsm
 
-        parts = []
+        parts, counts = [], []
         with Timer(stats, "rsm"):
             for c, g in enumerate(chain):
+                if not reach[c]:
+                    counts.append(0)
+                    continue
                 fit = None if c == len(chain) - 1 else g.bounds()
                 part = render_rsm(self.raster, light, bounds, settings.rsm_resolution, fit)
                 own = cascades.assign(chain, part.position) == c
                 parts.append((part, own))
+                counts.append(int(own.sum()))
         rsm = RSM(light, *(np.concatenate([getattr(p, f)[own] for p, own in parts])
                            for f in ("position", "normal", "flux", "area")),
                   sum(p.texels for p, _ in parts))
-        stats.info.setdefault("sun_rsm_per_cascade", {})[light.name] = [
-            int(own.sum()) for _, own in parts]
+        stats.info.setdefault("sun_rsm_per_cascade", {})[light.name] = counts
         return rsm, _vpl_sample(rsm)
 
     def clear_cache(self) -> None:

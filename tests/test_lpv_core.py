@@ -486,7 +486,8 @@ def test_sun_rsm_is_fitted_to_each_cascade():
     lo, hi = eng.lpv_bounds(sc)
     single = rsm_mod.render_rsm(eng.raster, sc.lights[0], (lo, hi), 128)
     level = cascades.assign(chain, single.position)
-    fitted, _ = eng._sun_rsm(sc.lights[0], chain, (lo, hi), settings, engine.Stats())
+    fitted, _ = eng._sun_rsm(sc.lights[0], chain, [True, True], (lo, hi), settings,
+                             engine.Stats())
     level_f = cascades.assign(chain, fitted.position)
     assert [int((level_f == c).sum()) for c in range(2)] == counts
     inner, inner_f = level == 0, level_f == 0
