@@ -49,14 +49,28 @@ a per-invocation index (its buffer loads run lane by lane). A step is one dispat
 double precision per work group and finished in float64, so the early stop decides as numpy's
 float64 sum does. The 10 "dom" programs take ~10 s to compile on llvmpipe (once; Mesa's disk
 cache keeps them).
+
+Backend "auto" (``auto_backend``) times numpy against GL on a small grid (``measure``, 1-2 s, and
+the compile time above the first time on a machine). The choice is kept on disk, in
+``auto_backend.json`` under ``$LPV_GI_CACHE_DIR``, else ``$XDG_CACHE_HOME/lpv_gi``, else
+``~/.cache/lpv_gi``, keyed by everything it depends on: GL vendor, renderer and version, the
+angular model, numpy's version, ``os.cpu_count()``, AUTO_MARGIN and a hash of the timed code's
+sources (``code_fingerprint``), so later processes on the same machine reuse it and a change of
+any of these measures again. ``LPV_GI_NO_CACHE=1`` turns the file off; an unreadable or
+unwritable cache is ignored (the choice is measured), and a failed GL context is not stored.
 """
 
 from __future__ import annotations
 
 import contextlib
+import hashlib
+import json
 import math
+import os
+import tempfile
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -1530,17 +1544,116 @@ def choose(ms: dict) -> dict:
             else "numpy" for stage in STAGES}
 
 
+CACHE_FILE = "auto_backend.json"
+# The modules whose code measure() times (a change to any of them measures again).
+_TIMED_MODULES = ("gl_backend", "propagation", "ordinates", "injection", "lookup", "closure",
+                  "sh", "grid")
+_FINGERPRINT: str | None = None
+
+
+def code_fingerprint() -> str:
+    """sha256 (16 hex digits) of the sources of the code measure() times."""
+    global _FINGERPRINT
+    if _FINGERPRINT is None:
+        h = hashlib.sha256()
+        here = Path(__file__).resolve().parent
+        for name in _TIMED_MODULES:
+            h.update(name.encode())
+            try:
+                h.update((here / f"{name}.py").read_bytes())
+            except OSError:
+                h.update(b"?")
+        _FINGERPRINT = h.hexdigest()[:16]
+    return _FINGERPRINT
+
+
+def cache_dir() -> Path:
+    """Where the auto choice is kept: $LPV_GI_CACHE_DIR, else $XDG_CACHE_HOME/lpv_gi, else
+    ~/.cache/lpv_gi."""
+    if os.environ.get("LPV_GI_CACHE_DIR"):
+        return Path(os.environ["LPV_GI_CACHE_DIR"])
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "lpv_gi"
+
+
+def _cache_enabled() -> bool:
+    return os.environ.get("LPV_GI_NO_CACHE", "").strip().lower() in ("", "0", "false", "no")
+
+
+def cache_key(gl: GLBackend, angular: str) -> str:
+    """Everything the auto choice depends on, as one string."""
+    info = gl.ctx.info
+    parts = {"vendor": info.get("GL_VENDOR", ""), "renderer": info.get("GL_RENDERER", ""),
+             "version": info.get("GL_VERSION", ""), "angular": angular,
+             "numpy": np.__version__, "cpus": os.cpu_count(), "margin": AUTO_MARGIN,
+             "code": code_fingerprint()}
+    return json.dumps(parts, sort_keys=True)
+
+
+def _cache_read() -> dict:
+    """The cache file's {key: record}; {} when missing, unreadable or not a JSON object."""
+    try:
+        with open(cache_dir() / CACHE_FILE, encoding="utf-8") as f:
+            data = json.load(f)
+    except (OSError, ValueError):
+        return {}
+    return data if isinstance(data, dict) else {}
+
+
+def _cache_write(key: str, record: dict) -> None:
+    """Add ``record`` under ``key`` (atomically: temp file + os.replace); errors are ignored
+    (a cache that cannot be written is no cache)."""
+    tmp = None
+    with contextlib.suppress(Exception):
+        folder = cache_dir()
+        folder.mkdir(parents=True, exist_ok=True)
+        data = _cache_read()
+        data[key] = record
+        fd, tmp = tempfile.mkstemp(prefix=".auto_backend.", suffix=".tmp", dir=folder)
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            json.dump(data, f, indent=1)
+        os.replace(tmp, folder / CACHE_FILE)
+        tmp = None
+    if tmp is not None:  # written but not moved into place
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+
+
+def _valid(record) -> bool:
+    return (isinstance(record, dict) and isinstance(record.get("stages"), dict)
+            and set(record["stages"]) == set(STAGES)
+            and all(v in ("numpy", "gl") for v in record["stages"].values())
+            and record.get("backend") in ("numpy", "gl", "mixed"))
+
+
 def auto_backend(gl: GLBackend | None = None, angular: str = "sh") -> dict:
     """Where each stage runs fastest on this machine for this angular model (``choose``),
-    measured once per process (and model, on first use): {"backend": "numpy" | "gl" |
-    "mixed", "stages": {stage: backend}, "ms": measure()}."""
+    measured once per machine, GL driver, code version and model (kept on disk, see the module
+    notes; "cached": True when read from there) and remembered per process: {"backend":
+    "numpy" | "gl" | "mixed", "stages": {stage: backend}, "ms": measure()}."""
     if angular not in _AUTO:
         try:
+            if gl is None:
+                gl = backend()
+            key = None
+            if _cache_enabled():
+                try:
+                    key = cache_key(gl, angular)
+                    hit = _cache_read().get(key)
+                except Exception:  # noqa: BLE001 - the cache never stops a render
+                    key, hit = None, None
+                if _valid(hit):
+                    stages = {stage: hit["stages"][stage] for stage in STAGES}
+                    _AUTO[angular] = dict(hit, stages=stages, cached=True)
+                    return _AUTO[angular]
             ms = measure(gl=gl, angular=angular)
             stages = choose(ms)
             names = set(stages.values())
-            _AUTO[angular] = {"backend": names.pop() if len(names) == 1 else "mixed",
-                              "stages": stages, "ms": ms, "angular": angular}
+            record = {"backend": names.pop() if len(names) == 1 else "mixed",
+                      "stages": stages, "ms": ms, "angular": angular}
+            if key is not None:
+                _cache_write(key, record)
+            _AUTO[angular] = dict(record, cached=False)
         except Exception as exc:  # noqa: BLE001 - no usable GL context: numpy it is
             _AUTO[angular] = {"backend": "numpy", "stages": dict.fromkeys(STAGES, "numpy"),
                               "ms": {}, "angular": angular, "reason": f"gl unavailable: {exc}"}

@@ -1,4 +1,5 @@
-"""Test isolation: Blender user resources and Mesa's shader cache go to a temp dir."""
+"""Test isolation: Blender user resources, Mesa's shader cache and the auto-backend cache go
+to a temp dir."""
 
 import os
 import sys
@@ -10,6 +11,9 @@ _TMP = Path(tempfile.mkdtemp(prefix="lpv_test_"))
 # Must happen before anything imports bpy: keeps tests out of the user's Blender config.
 os.environ.setdefault("BLENDER_USER_RESOURCES", str(_TMP / "blender_user"))
 os.environ.setdefault("MESA_SHADER_CACHE_DIR", str(_TMP / "mesa_cache"))
+# backend "auto"'s choice (gl_backend.auto_backend) is cached on disk: never in the user's home
+# (set, not setdefault; subprocesses such as the batch CLI inherit it).
+os.environ["LPV_GI_CACHE_DIR"] = str(_TMP / "lpv_gi_cache")
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
