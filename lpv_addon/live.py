@@ -170,8 +170,8 @@ class LiveResult:
 
     serial: int
     grid: object  # core.grid.Grid or None
-    values: np.ndarray | None  # combined (R,R,R,3,4)
-    per_light: dict
+    values: np.ndarray | None  # combined (R,R,R,3,K): K = 9 for angular "dom", else 4
+    per_light: dict  # light name -> (R,R,R,3,K)
     lights: list
     settings: object
     areas: list

@@ -1,14 +1,19 @@
 """Viewport overlay: the LPV drawn with Blender's ``gpu`` module in a SpaceView3D handler.
 
 How it shades (our choice, per fragment rather than per vertex): each cascade's combined LPV
-is uploaded as three 3D textures (one per colour channel, RGBA = the 4 SH coefficients;
-RGBA16F, scaled by the grid's largest magnitude so half floats keep their relative precision)
-plus its propagation visibility (two RGB 3D textures: transmittance towards +x+y+z and -x-y-z),
-and a fragment shader repeats ``lpv_core.lookup.irradiance`` for every pixel of the extracted
-scene geometry: sample half a cell along the viewer-facing normal, trilinear over the 8 nearest
-cells (zero outside the grid) leaving out corners behind occluders and renormalising
-(``injection.visible_corners``), then the clamped-SH cosine convolution x 12/7 / s^2 or the
-"m1" closure read through a table, clamp at zero; cascades add up. Indirect radiance =
+is uploaded as seven 3D textures (RGBA16F, scaled by the grid's largest magnitude so half
+floats keep their relative precision): per colour channel one with SH coefficients 0-3 (bands
+0-1) and one with coefficients 4-7 (band 2), and one whose RGB is coefficient 8 of the three
+colours (the band-2 textures hold zeros for a 4-coefficient grid), plus its propagation
+visibility (two RGB 3D textures: transmittance towards +x+y+z and -x-y-z); 10 samplers per
+draw, one draw per cascade. A fragment shader repeats ``lpv_core.lookup.irradiance`` for every
+pixel of the extracted scene geometry: sample half a cell along the viewer-facing normal,
+trilinear over the 8 nearest cells (zero outside the grid) leaving out corners behind
+occluders and renormalising (``injection.visible_corners``), then per grid format: a
+9-coefficient grid (``angular="dom"``) with the irradiance kernel of ``sh.irradiance_weights``
+/ s^2, a 4-coefficient one with the clamped-SH cosine convolution x 12/7 / s^2 ("sh") or the
+"m1" closure read through a table ("m1", 4-coefficient "dom"); clamp at zero; cascades add
+up. Indirect radiance =
 irradiance / pi x albedo, 0 where ``gi_receiver`` is off. Per-vertex shading would blur the
 LPV over large polygons (a Cornell wall is one quad). Transition areas are multiplied into the
 uploaded grids per cell (exact inside a box and far from it; the falloff is resolved at cell
@@ -17,7 +22,7 @@ size), clip areas act in propagation and in the visibility already.
 Modes (``Scene.lpv.overlay_mode``): ADD (indirect added on top of the viewport shading, for
 EEVEE material preview or solid mode), INDIRECT (indirect only), and debug views: CASCADES
 (grid bounds), VPLS (a VPL sample, coloured by flux), PROBES (each cell's SH as a glyph whose
-radius is the intensity towards that direction) and OCCLUSION (points on the cell faces where
+radius is the intensity towards that direction, from all 4 or 9 coefficients) and OCCLUSION (points on the cell faces where
 propagation is blocked: the geometry volume's occlusion times clip areas, white to red).
 The viewport's colours are linear; the view transform (AgX, Filmic) of the viewport shading is
 not applied to the overlay, so ADD is exact with the Standard transform.
@@ -53,6 +58,12 @@ const float GAIN = 1.7142857142857142;    /* 12/7: undoes re-projection smoothin
 const float SQRT_4PI = 3.5449077018110318;
 const float FLUX_B1 = 2.0466534158929770; /* Y1 4 pi / 3: net flux from band 1 */
 const float MAX_R = 0.995;
+/* sh.irradiance_weights: Y(-n) x (pi, 2 pi / 3, pi / 4) per band */
+const float K0 = 0.886226925452758;       /* pi Y0 */
+const float K1 = 1.0233267079464885;      /* 2 pi / 3 Y1 */
+const float K2A = 0.8580855308097834;     /* pi / 4 Y2A */
+const float K2B = 0.2477079561003757;     /* pi / 4 Y2B */
+const float K2C = 0.4290427654048917;     /* pi / 4 Y2C */
 
 float m1_irradiance(vec4 s, vec3 n) {
     float held = max(s.x, 0.0) * SQRT_4PI;
@@ -93,6 +104,11 @@ void main() {
     vec4 sr = vec4(0.0);
     vec4 sg = vec4(0.0);
     vec4 sb = vec4(0.0);
+    vec4 sr2 = vec4(0.0);  /* band 2: coefficients 4-7 */
+    vec4 sg2 = vec4(0.0);
+    vec4 sb2 = vec4(0.0);
+    vec3 s8 = vec3(0.0);   /* coefficient 8 of r, g, b */
+    bool band2 = view_dir.w > 1.5;
     float w_all = 0.0;
     float w_seen = 0.0;
     for (int k = 0; k < 8; k++) {
@@ -112,13 +128,31 @@ void main() {
         sr += w * texelFetch(lpv_r, i, 0);
         sg += w * texelFetch(lpv_g, i, 0);
         sb += w * texelFetch(lpv_b, i, 0);
+        if (band2) {
+            sr2 += w * texelFetch(lpv_r2, i, 0);
+            sg2 += w * texelFetch(lpv_g2, i, 0);
+            sb2 += w * texelFetch(lpv_b2, i, 0);
+            s8 += w * texelFetch(lpv_c8, i, 0).xyz;
+        }
     }
     float renorm = w_seen > 0.0 ? params.z * w_all / w_seen : 0.0;
     sr *= renorm;
     sg *= renorm;
     sb *= renorm;
+    sr2 *= renorm;
+    sg2 *= renorm;
+    sb2 *= renorm;
+    s8 *= renorm;
     vec3 e;
-    if (view_dir.w > 0.5) {
+    if (band2) {
+        vec4 w01 = vec4(K0, K1 * n.y, -K1 * n.z, K1 * n.x);  /* band 1 is odd: Y(-n) */
+        vec4 w2 = vec4(K2A * n.x * n.y, K2A * n.y * n.z, K2B * (3.0 * n.z * n.z - 1.0),
+                       K2A * n.x * n.z);
+        float w8 = K2C * (n.x * n.x - n.y * n.y);
+        e = vec3(dot(sr, w01) + dot(sr2, w2), dot(sg, w01) + dot(sg2, w2),
+                 dot(sb, w01) + dot(sb2, w2)) + s8 * w8;
+    }
+    else if (view_dir.w > 0.5) {
         e = vec3(m1_irradiance(sr, n), m1_irradiance(sg, n), m1_irradiance(sb, n));
     }
     else {
@@ -148,7 +182,7 @@ def _lpv_shader():
         info.push_constant("VEC4", "grid")  # origin xyz, cell size
         info.push_constant("VEC4", "params")  # resolution, weight, value scale, use visibility
         info.push_constant("VEC4", "eye")  # eye position, 1 if orthographic
-        info.push_constant("VEC4", "view_dir")  # view direction, 1 if "m1" lookup
+        info.push_constant("VEC4", "view_dir")  # view direction; 0 "sh", 1 "m1", 2 9 coeffs
         info.push_constant("FLOAT", "nudge")  # deferred.toward_viewer's distance
         info.sampler(0, "FLOAT_3D", "lpv_r")
         info.sampler(1, "FLOAT_3D", "lpv_g")
@@ -156,6 +190,10 @@ def _lpv_shader():
         info.sampler(3, "FLOAT_3D", "vis_plus")
         info.sampler(4, "FLOAT_3D", "vis_minus")
         info.sampler(5, "FLOAT_2D", "cos_table")
+        info.sampler(6, "FLOAT_3D", "lpv_r2")
+        info.sampler(7, "FLOAT_3D", "lpv_g2")
+        info.sampler(8, "FLOAT_3D", "lpv_b2")
+        info.sampler(9, "FLOAT_3D", "lpv_c8")
         info.fragment_out(0, "VEC4", "FragColor")
         info.vertex_source(VERTEX_SOURCE)
         info.fragment_source(FRAGMENT_SOURCE)
@@ -169,16 +207,28 @@ def _texture(shape, fmt: str, data: np.ndarray):
     return gpu.types.GPUTexture(shape, format=fmt, data=buf)
 
 
+LPV_SAMPLERS = ("lpv_r", "lpv_g", "lpv_b", "lpv_r2", "lpv_g2", "lpv_b2", "lpv_c8")
+
+
 def lpv_textures(grid, values: np.ndarray):
-    """Three RGBA16F 3D textures (R, G, B channel; RGBA = SH coefficients) and the scale the
-    values were divided by. Texture data is C-order (z, y, x, c); our grid is [x, y, z]."""
+    """RGBA16F 3D textures of an (R, R, R, 3, K) grid, K = 4 or 9, and the scale the values
+    were divided by (the largest magnitude). Three textures (R, G, B channel; RGBA = SH
+    coefficients 0-3) for K = 4; for K = 9 four more, in ``LPV_SAMPLERS`` order: coefficients
+    4-7 of the R, G, B channel and one whose RGB is coefficient 8 of R, G, B. Texture data is
+    C-order (z, y, x, c); our grid is [x, y, z]."""
     r = grid.resolution
+    k = values.shape[-1]
+    if k not in (4, live.core.sh.BANDS2):
+        raise ValueError(f"LPV grid with {k} SH coefficients (4 or 9 expected)")
     scale = float(np.abs(values).max()) if values.size else 0.0
     scale = scale if scale > 0 and np.isfinite(scale) else 1.0
-    texs = []
-    for ch in range(3):
-        arr = values[:, :, :, ch, :].transpose(2, 1, 0, 3) / scale
-        texs.append(_texture((r, r, r), "RGBA16F", arr))
+    zyx = np.asarray(values, np.float32).transpose(2, 1, 0, 3, 4) / scale  # (z, y, x, 3, K)
+    texs = [_texture((r, r, r), "RGBA16F", zyx[:, :, :, ch, 0:4]) for ch in range(3)]
+    if k == live.core.sh.BANDS2:
+        texs += [_texture((r, r, r), "RGBA16F", zyx[:, :, :, ch, 4:8]) for ch in range(3)]
+        last = np.zeros((r, r, r, 4), np.float32)
+        last[..., :3] = zyx[..., 8]
+        texs.append(_texture((r, r, r), "RGBA16F", last))
     return texs, scale
 
 
@@ -237,6 +287,7 @@ def _result_resources(result):
             values = live.core.areas.apply_transition_to_grid(grid, values, result.areas)
             texs, scale = lpv_textures(grid, values)
             out.append({"grid": grid, "textures": texs, "scale": scale,
+                        "coefficients": int(values.shape[-1]),
                         "visibility": visibility_textures(grid, visibility)})
         table = result.cosine_table
         if table is None:
@@ -278,7 +329,9 @@ def _draw_indirect(result, mvp: Matrix, eye4, view_dir4, weight: float,
         return
     res = _result_resources(result)
     shader = _lpv_shader()
-    angular = 1.0 if getattr(result.settings, "angular", "sh") in live.core.closure.LOBE_MODELS else 0.0
+    # lookup.irradiance: 9 coefficients read with the irradiance kernel (2) whatever the
+    # model, 4 as the max-entropy lobe (1: "m1", "dom") or the clamped SH (0: "sh")
+    lobe = getattr(result.settings, "angular", "sh") in live.core.closure.LOBE_MODELS
     nudge = live.core.deferred.VIEWER_NUDGE_CELLS * min(lv["grid"].cell_size
                                                       for lv in res["levels"])
     for i, level in enumerate(res["levels"]):
@@ -291,10 +344,12 @@ def _draw_indirect(result, mvp: Matrix, eye4, view_dir4, weight: float,
         shader.uniform_float("params", (float(g.resolution), float(weight), level["scale"],
                                         0.0 if vis is None else 1.0))
         shader.uniform_float("eye", eye4)
-        shader.uniform_float("view_dir", (*view_dir4[:3], angular))
+        mode = 2.0 if level["coefficients"] == live.core.sh.BANDS2 else (1.0 if lobe else 0.0)
+        shader.uniform_float("view_dir", (*view_dir4[:3], mode))
         shader.uniform_float("nudge", nudge)
-        for name, tex in zip(("lpv_r", "lpv_g", "lpv_b"), level["textures"]):
-            shader.uniform_sampler(name, tex)
+        texs = level["textures"]
+        for j, name in enumerate(LPV_SAMPLERS):  # a 4-coefficient grid never reads band 2
+            shader.uniform_sampler(name, texs[j] if j < len(texs) else res["ones"])
         plus, minus = vis if vis is not None else (res["ones"], res["ones"])
         shader.uniform_sampler("vis_plus", plus)
         shader.uniform_sampler("vis_minus", minus)
@@ -377,12 +432,15 @@ def _sphere(subdivisions: int = 2) -> tuple[np.ndarray, np.ndarray]:
 
 def probe_glyphs(grid, values: np.ndarray, max_probes: int = 1500):
     """Triangles (N, 3) and colours (N, 4) of SH glyphs on an even lattice of cells: the
-    radius towards w is the intensity max(0, <I, Y(w)>) (its shape per probe), the glyph size
-    grows with the cube root of the probe's flux, coloured by the intensity's colour."""
+    radius towards w is the intensity max(0, <I, Y(w)>) (its shape per probe) with all of the
+    grid's coefficients (4, or 9 with band 2 for a discrete-ordinates grid: sharper lobes), the
+    glyph size grows with the cube root of the probe's flux, coloured by the intensity's
+    colour."""
     dirs, faces = _sphere(2)
-    basis = live.core.sh.evaluate_basis(dirs)  # (D, 4)
+    k = values.shape[-1]
+    basis = live.core.sh.evaluate_basis2(dirs)[:, :k]  # (D, K)
     r = grid.resolution
-    flat = values.reshape(-1, 3, 4)
+    flat = values.reshape(-1, 3, k)
     energy = np.maximum(flat[:, :, 0].mean(axis=1), 0.0)
     peak_energy = float(energy.max(initial=0.0))
     if peak_energy <= 0:

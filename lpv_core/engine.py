@@ -289,7 +289,7 @@ class Engine:
                      for c, g in enumerate(chain)]
         planner.record(reach[-1], stats, "rsm")
         if not reach[-1].keep:  # reaches no caster at all: no RSM either
-            totals = [g.zeros() for g in chain]
+            totals = [g.zeros(propagation.coefficients(scene.settings.angular)) for g in chain]
             sample = (np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32))
             self._cache[light.name] = (light_key(light), totals, sample, None)
             return totals, sample, 0
@@ -514,7 +514,7 @@ class _ChainRun:
         last = len(chain) - 1
         n = positions.shape[0]
         level = cascades.assign(chain, positions) if last else np.zeros(n, np.int64)
-        totals = [g.zeros() for g in chain]
+        totals = [g.zeros(propagation.coefficients(settings.angular)) for g in chain]
         for group in direction_groups(normals, settings.direction_groups):
             idx = np.arange(n)[group]
             carry = None
@@ -667,7 +667,8 @@ def combine(grid: Grid, per_light: dict, lights, intensity: float) -> np.ndarray
     """The LPV: sum of per-light propagated grids x light weight, x global intensity.
     Propagation is linear, so art-direction changes (GI intensity, tint, global intensity)
     re-combine cached grids without recomputing them."""
-    combined = grid.zeros()
+    held = [v for v in per_light.values() if v is not None]
+    combined = grid.zeros(held[0].shape[-1] if held else 4)
     for light in lights:
         values = per_light.get(light.name)
         if values is not None:

@@ -4,21 +4,27 @@ Mirrors ``injection.inject``, ``propagation.step`` / ``propagate`` (all three an
 "sh" with either re-projection, the flux-conserving scale, optional visibility, first step
 unoccluded unless ``occlude_first_step``, the accumulation and the early stop; "m1" with the
 closure's bundles and the advection matrix; "dom", discrete ordinates (ordinates.py), with its
-unfold, per-octant advection, fold and ``capture_outflow``; "dom" has no single step on moments
-and ``step`` raises as numpy's does) and ``lookup.sample`` / ``irradiance`` ("sh", and "m1" /
-"dom" read as the maximum-entropy lobe, closure.LOBE_MODELS), with the same signatures and
-semantics. The shaders are generated from the numpy modules' own tables and constants
-(propagation.tables, propagation._m1_tables, ordinates.tables, closure), so a change there
-carries over; a change of the algorithm itself must be ported. Agreement: 1e-4 relative or
-better (tests/test_gl_backend.py; about 2e-7 of the grid's largest value in practice). Options
-not ported yet (``capture_outflow`` with "sh" / "m1", unknown keywords) run the numpy code and
-are counted in ``GLBackend.fallbacks``.
+unfold, per-octant advection, fold into bands 0-2 (9 coefficients per colour, plus the
+injected grid extended to band 2 as ordinates.emission_band2) and ``capture_outflow`` (folded to
+4 moments); "dom" has no single step on moments and ``step`` raises as numpy's does) and
+``lookup.sample`` / ``irradiance`` (4 coefficients: "sh", and "m1" / "dom" read as the
+maximum-entropy lobe, closure.LOBE_MODELS; 9 coefficients, whatever the model: the band 0-2
+irradiance kernel, sh.irradiance_weights), with the same signatures and semantics. The
+shaders are generated from the numpy modules' own tables and constants (propagation.tables,
+propagation._m1_tables, ordinates.tables, closure, sh), so a change there carries over; a
+change of the algorithm itself must be ported. Agreement: 1e-4 relative or better
+(tests/test_gl_backend.py; about 2e-7 of the grid's largest value in practice, up to 5e-7
+for a "dom" grid's bands 0-2). Options not ported yet (``capture_outflow`` with "sh" / "m1", unknown keywords)
+run the numpy code and are counted in ``GLBackend.fallbacks`` (so is ``flux`` of a
+9-coefficient grid, summed by numpy after a readback).
 
 Module-level functions take and return numpy arrays exactly like the numpy ones. The methods
 of ``GLBackend`` keep data on the GPU between stages: ``inject`` returns a ``GLGrid`` (a
-storage buffer laid out exactly like the numpy array, (R, R, R, 3, 4) float32 in C order),
-``propagate`` takes one and reads back only the accumulated grid the engine caches per light
-(or nothing, ``readback=False``), ``irradiance`` reads back only the (M, 3) irradiance.
+storage buffer laid out exactly like the numpy array, (R, R, R, 3, K) float32 in C order, K = 4;
+9 for a "dom" propagated grid, ``GLGrid.coefficients``), ``propagate`` takes a 4-coefficient one
+and reads back only the accumulated grid the engine caches per light (or nothing,
+``readback=False``; ``keep_gpu`` keeps it as a GLGrid of the same K), ``irradiance`` takes
+either K and reads back only the (M, 3) irradiance.
 Positions go up as float64 and become cell coordinates in double precision in the shaders.
 
 Injection without float atomics (they are not core GLSL): every VPL adds its 8 x 12 trilinear
@@ -42,9 +48,10 @@ Memory: the "m1" step keeps 27 x 3 vec4 of arrivals per cell between its two pas
 768 B per cell; packed per octant into 52 vec4 = 832 B) in each of three rgba32f 3-D textures
 (current, next, accumulated; a fourth for the outflow with ``capture_outflow``, on the grid
 padded by one cell): 82 MB at 32^3, 650 MB at 64^3, 5.2 GB at 128^3 (plus a few % where a
-side is rounded off a power of two, see _texture3d). The flux is held in images rather than
-storage buffers because llvmpipe loads an image texel 3-5x faster than a storage-buffer vec4 at
-a per-invocation index (its buffer loads run lane by lane). A step is one dispatch per octant
+side is rounded off a power of two, see _texture3d); the folded result, 3 x 9 floats per cell
+(108 B), is a storage buffer. The flux is held in images rather than storage buffers because
+llvmpipe loads an image texel 3-5x faster than a storage-buffer vec4 at a per-invocation index
+(its buffer loads run lane by lane). A step is one dispatch per octant
 (each cell gathers its octant's ~8 directions from 8 sources), the moved flux is summed in
 double precision per work group and finished in float64, so the early stop decides as numpy's
 float64 sum does. The 10 "dom" programs take ~10 s to compile on llvmpipe (once; Mesa's disk
@@ -82,6 +89,7 @@ LOCAL = 64  # invocations per work group (1-D)
 MAX_GROUPS = 65535  # GL's guaranteed GL_MAX_COMPUTE_WORK_GROUP_COUNT per dimension
 FIXED_BITS = 24  # largest contribution -> 2^24 (see the module notes)
 WORDS_PER_CELL = 25  # 12 x (low, high) + one bias counter
+GRID_COEFFICIENTS = (4, sh.BANDS2)  # SH coefficients per colour a grid may hold
 
 _HEADER = """
 #version 430
@@ -389,8 +397,17 @@ def _cosine_table() -> tuple[np.ndarray, float]:
 
 
 def _lookup_source() -> str:
-    return _HEADER + _closure_consts() + """
+    k1, k2 = sh.IRRADIANCE_KERNEL[1], sh.IRRADIANCE_KERNEL[2]
+    return _HEADER + _closure_consts() + f"""
+const float Y2A = {_lit(sh.Y2A)};
+const float Y2B = {_lit(sh.Y2B)};
+const float Y2C = {_lit(sh.Y2C)};
+const float W0 = {_lit(sh.IRRADIANCE_KERNEL[0] * sh.Y0)};  // sh.irradiance_weights: A_l Y_lm
+const float W1 = {_lit(k1 * sh.Y1)};
+const float K_BAND2 = {_lit(k2)};
+""" + """
 layout(std430, binding = 0) readonly buffer Values { vec4 values[]; };  // (R, R, R, 3) x 4
+layout(std430, binding = 6) readonly buffer Values9 { float values9[]; };  // (R, R, R, 3, 9)
 layout(std430, binding = 1) readonly buffer Pos { double pos[]; };  // (M, 3) world
 layout(std430, binding = 2) readonly buffer Nrm { double nrm[]; };  // (M, 3)
 layout(std430, binding = 3) writeonly buffer Dst { float dst[]; };
@@ -399,8 +416,10 @@ uniform int R;
 uniform dvec3 origin;
 uniform double inv_cell;
 uniform float offset_cells;
-uniform float k_irr;  // REPROJECTION_GAIN / cell^2 (mode 1), 1 / cell^2 (mode 2)
-uniform int mode;     // 0: SH samples (M, 12), no normals; 1: irradiance "sh"; 2: "m1"
+uniform float k_irr;  // REPROJECTION_GAIN / cell^2 (mode 1), 1 / cell^2 (modes 2, 3)
+uniform int mode;     // 0: SH samples (M, 3 K), no normals; 1: irradiance "sh"; 2: "m1";
+                      // 3: bands 0-2 (sh.irradiance_weights)
+uniform int nine;     // 1: the grid holds 9 coefficients (values9), else 4 (values)
 layout(std430, binding = 4) readonly buffer Table { float table[]; };  // (n_r, n_t)
 layout(std430, binding = 5) readonly buffer Vis { float vis[]; };  // (6, R, R, R)
 uniform int use_vis;
@@ -430,18 +449,46 @@ void main() {
     float wts[8];
     corner_weights(fr, ic0, near, wts);
     vec4 s[3] = vec4[3](vec4(0.0), vec4(0.0), vec4(0.0));
+    vec4 s2[3] = vec4[3](vec4(0.0), vec4(0.0), vec4(0.0));  // band 2 (nine): Y2-2 .. Y21
+    vec3 s22 = vec3(0.0);                                    // and Y22 per colour
     for (int k = 0; k < 8; ++k) {
         float w = wts[k];
         if (!(w != 0.0)) continue;  // also every corner outside the grid
         ivec3 ic = ic0 + ivec3((k >> 2) & 1, (k >> 1) & 1, k & 1);
         uint vo = uint((ic.x * R + ic.y) * R + ic.z) * 3u;
-        s[0] += w * values[vo];
-        s[1] += w * values[vo + 1u];
-        s[2] += w * values[vo + 2u];
+        if (nine != 0) {
+            for (uint ch = 0u; ch < 3u; ++ch) {
+                uint b = (vo + ch) * 9u;
+                s[ch] += w * vec4(values9[b], values9[b + 1u], values9[b + 2u], values9[b + 3u]);
+                s2[ch] += w * vec4(values9[b + 4u], values9[b + 5u], values9[b + 6u],
+                                   values9[b + 7u]);
+                s22[ch] += w * values9[b + 8u];
+            }
+        } else {
+            s[0] += w * values[vo];
+            s[1] += w * values[vo + 1u];
+            s[2] += w * values[vo + 2u];
+        }
     }
     if (mode == 0) {
+        uint width = nine != 0 ? 27u : 12u;
+        uint k_coeffs = nine != 0 ? 9u : 4u;
+        for (uint ch = 0u; ch < 3u; ++ch) {
+            uint o = width * i + ch * k_coeffs;
+            for (int j = 0; j < 4; ++j) dst[o + uint(j)] = s[ch][j];
+            if (nine != 0) {
+                for (int j = 0; j < 4; ++j) dst[o + 4u + uint(j)] = s2[ch][j];
+                dst[o + 8u] = s22[ch];
+            }
+        }
+    } else if (mode == 3) {  // <coeffs, sh.irradiance_weights(n)>: Y(-n) x the kernel
+        vec4 w1 = vec4(W0, W1 * n.y, -W1 * n.z, W1 * n.x);  // band 2 is even: Y2(-n) = Y2(n)
+        vec4 w2 = K_BAND2 * vec4(Y2A * n.x * n.y, Y2A * n.y * n.z, Y2B * (3.0 * n.z * n.z - 1.0),
+                                 Y2A * n.x * n.z);
+        float w22 = K_BAND2 * Y2C * (n.x * n.x - n.y * n.y);
         for (int ch = 0; ch < 3; ++ch) {
-            for (int j = 0; j < 4; ++j) dst[12u * i + uint(ch * 4 + j)] = s[ch][j];
+            float e = dot(s[ch], w1) + dot(s2[ch], w2) + s22[ch] * w22;
+            dst[3u * i + uint(ch)] = max(e * k_irr, 0.0);
         }
     } else if (mode == 1) {
         vec4 lobe = vec4(C0, C1 * n.y, -C1 * n.z, C1 * n.x);  // lobe(-n)
@@ -636,7 +683,9 @@ def _dom_sources() -> dict:
     border) sources dst - offset, x trilinear weight x the source's transmittance towards that
     offset (propagation._offset_visibility); arrivals in the pad shell go to outflow instead.
     The first step writes acc and outflow instead of adding (no clearing pass). fold, per
-    output cell: sum_j flux_j Y(w_j), plus the injected grid.
+    output cell: sum_j flux_j Y(w_j) over bands 0-2 (``band2``: the values, 9 coefficients,
+    plus the injected grid with its band 2 from ordinates.emission_band2) or bands 0-1 (the
+    outflow, 4).
     """
     from . import ordinates
 
@@ -708,43 +757,89 @@ STORES
 """.replace("BUNDLES", "\n".join(lines)).replace("WRITES", "\n".join(writes)).replace(
         "STORES", "\n".join(stores)).replace("NF", str(4 * slots)).replace(
         "Q]", f"{q}]").replace("< Q;", f"< {q};").replace("float(Q)", f"float({q})")
-    fold_lines = []
+    basis2 = np.asarray(sh.evaluate_basis2(dirs), np.float32)  # ordinates.fold's, bands 0-2
+    fold4, fold9 = [], []
     for j0, n, s0, m in layout:
         for t in range(m):
-            fold_lines.append(f"        f = imageLoad(acc, texel(pf, {s0 + t}));")
+            for lines_k in (fold4, fold9):
+                lines_k.append(f"            f = imageLoad(acc, texel(pf, {s0 + t}));")
             for comp in range(min(4, 3 * n - 4 * t)):
                 k = 4 * t + comp
-                vals = ", ".join(_lit(x) for x in basis[j0 + k // 3])
-                fold_lines.append(f"        m{k % 3} += vec4({vals}) * f.{'xyzw'[comp]};")
-    fold = _HEADER + """
+                y = basis2[j0 + k // 3]
+                x = f"f.{'xyzw'[comp]}"
+
+                def vec(v):
+                    return f"vec4({', '.join(_lit(c) for c in v)})"
+
+                fold4.append(f"            m{k % 3} += {vec(basis[j0 + k // 3])} * {x};")
+                fold9 += [f"            m{k % 3} += {vec(y[:4])} * {x};",
+                          f"            n{k % 3} += {vec(y[4:8])} * {x};",
+                          f"            e{k % 3} += {_lit(y[8])} * {x};"]
+    fold = _HEADER + _closure_consts() + f"""
+const float EMISSION_R_MAX = {_lit(closure.LAMBERTIAN_MEAN_COSINE)};
+const float Y2A = {_lit(sh.Y2A)};
+const float Y2B = {_lit(sh.Y2B)};
+const float Y2C = {_lit(sh.Y2C)};
+""" + """
 layout(rgba32f, binding = 0) readonly uniform image3D acc;        // the flux, RF^3 cells
 layout(std430, binding = 0) readonly buffer Inj { vec4 inj[]; };  // (R, R, R, 3) x 4
-layout(std430, binding = 1) writeonly buffer Dst { vec4 dst[]; };  // (R, R, R, 3) x 4
+layout(std430, binding = 1) writeonly buffer Dst { float dst[]; };  // (R, R, R, 3, 4 or 9)
 uniform uint count;  // output cells, R^3
 uniform int R;
 uniform int pad;
 uniform ivec2 tiles[SLOTS];
 uniform int use_acc;  // 0: no step was run, acc holds nothing
-uniform int add_injected;
-""" + _TEXEL_FN + """
+uniform int add_injected;  // with band2: + ordinates.emission_band2 of the injected grid
+uniform int band2;    // 1: bands 0-2, 9 coefficients (the lookup's grid); 0: 4 (the outflow)
+""" + _MOMENTS_FN + _TEXEL_FN + """
 void main() {
     uint c = base + gl_GlobalInvocationID.x;
     if (c >= count) return;
     ivec3 pf = cell_of(c, R) + pad;
     vec4 m0 = vec4(0.0), m1 = vec4(0.0), m2 = vec4(0.0), f;
+    vec4 n0 = vec4(0.0), n1 = vec4(0.0), n2 = vec4(0.0);
+    float e0 = 0.0, e1 = 0.0, e2 = 0.0;
     if (use_acc != 0) {
-FOLD
+        if (band2 != 0) {
+FOLD9
+        } else {
+FOLD4
+        }
     }
-    if (add_injected != 0) {
-        m0 += inj[c * 3u];
-        m1 += inj[c * 3u + 1u];
-        m2 += inj[c * 3u + 2u];
+    vec4 m[3] = vec4[3](m0, m1, m2);
+    vec4 nn[3] = vec4[3](n0, n1, n2);
+    float e[3] = float[3](e0, e1, e2);
+    for (uint ch = 0u; ch < 3u; ++ch) {
+        if (add_injected != 0) {
+            vec4 v = inj[c * 3u + ch];
+            m[ch] += v;
+            if (band2 != 0 && v.x > 0.0) {
+                // ordinates.emission_band2: c_2m = Phi E[P2(<d, w>)] Y_2m(d) of cos^n
+                float held, r;
+                vec3 d;
+                moments(v, held, r, d);
+                float rr = clamp(r, 0.5 + 1e-6, EMISSION_R_MAX);
+                float ne = (2.0 * rr - 1.0) / (1.0 - rr);
+                float h = held * (r > 0.5 ? ne / (ne + 3.0) : 0.0);
+                nn[ch] += h * vec4(Y2A * d.x * d.y, Y2A * d.y * d.z, Y2B * (3.0 * d.z * d.z - 1.0),
+                                   Y2A * d.x * d.z);
+                e[ch] += h * (Y2C * (d.x * d.x - d.y * d.y));
+            }
+        }
+        if (band2 != 0) {
+            uint o = (c * 3u + ch) * 9u;
+            for (int j = 0; j < 4; ++j) {
+                dst[o + uint(j)] = m[ch][j];
+                dst[o + 4u + uint(j)] = nn[ch][j];
+            }
+            dst[o + 8u] = e[ch];
+        } else {
+            uint o = (c * 3u + ch) * 4u;
+            for (int j = 0; j < 4; ++j) dst[o + uint(j)] = m[ch][j];
+        }
     }
-    dst[c * 3u] = m0;
-    dst[c * 3u + 1u] = m1;
-    dst[c * 3u + 2u] = m2;
 }
-""".replace("FOLD", "\n".join(fold_lines))
+""".replace("FOLD9", "\n".join(fold9)).replace("FOLD4", "\n".join(fold4))
     vis = _HEADER + """
 layout(std430, binding = 0) readonly buffer Vis { float vis[]; };  // (6, R, R, R)
 layout(rgba32f, binding = 0) writeonly uniform image3D dst;
@@ -852,17 +947,21 @@ void main() {
 
 
 class GLGrid:
-    """An (R, R, R, 3, 4) float32 SH grid held in a shader storage buffer."""
+    """An (R, R, R, 3, K) float32 SH grid held in a shader storage buffer: K = 4 (injected,
+    "sh" / "m1" propagated, the outflow) or 9 (bands 0-2, a "dom" propagated grid)."""
 
-    def __init__(self, buffer, resolution: int, owned: bool = True):
+    def __init__(self, buffer, resolution: int, owned: bool = True, coefficients: int = 4):
+        if coefficients not in GRID_COEFFICIENTS:
+            raise ValueError(f"a grid holds {GRID_COEFFICIENTS} coefficients, not {coefficients}")
         self.buffer = buffer
         self.resolution = int(resolution)
         self.owned = owned  # False for a backend's scratch buffer: release() leaves it alone
+        self.coefficients = int(coefficients)
 
     @property
     def shape(self) -> tuple[int, int, int, int, int]:
         r = self.resolution
-        return (r, r, r, 3, 4)
+        return (r, r, r, 3, self.coefficients)
 
     @property
     def cells(self) -> int:
@@ -870,10 +969,10 @@ class GLGrid:
 
     @property
     def nbytes(self) -> int:
-        return self.cells * 48
+        return self.cells * 12 * self.coefficients
 
     def read(self) -> np.ndarray:
-        """Read back to a numpy array (R, R, R, 3, 4) float32."""
+        """Read back to a numpy array (R, R, R, 3, K) float32."""
         data = self.buffer.read(size=self.nbytes)
         return np.frombuffer(data, np.float32).reshape(self.shape).copy()
 
@@ -973,23 +1072,31 @@ class GLBackend:
         prog["offset_cells"].value = float(offset_cells)
 
     def upload(self, values: np.ndarray) -> GLGrid:
-        """A GPU copy of an (R, R, R, 3, 4) grid."""
+        """A GPU copy of an (R, R, R, 3, 4) grid (or (R, R, R, 3, 9): bands 0-2)."""
         values = np.ascontiguousarray(values, np.float32)
-        r = values.shape[0]
-        if values.shape != (r, r, r, 3, 4):
-            raise ValueError(f"grid values must be (R, R, R, 3, 4), not {values.shape}")
-        return GLGrid(self.ctx.buffer(values.tobytes()), r)
+        r = values.shape[0] if values.ndim else 0
+        k = values.shape[-1] if values.ndim else 0
+        if values.shape != (r, r, r, 3, k) or k not in GRID_COEFFICIENTS:
+            raise ValueError(f"grid values must be (R, R, R, 3, 4) or (R, R, R, 3, 9), "
+                             f"not {values.shape}")
+        return GLGrid(self.ctx.buffer(values.tobytes()), r, coefficients=k)
 
-    def _as_gpu(self, values) -> tuple[GLGrid, bool]:
-        """(grid on the GPU, whether it was uploaded here and must be released)."""
+    def _as_gpu(self, values, allowed: tuple = (4,)) -> tuple[GLGrid, bool]:
+        """(grid on the GPU, whether it was uploaded here and must be released); ValueError
+        unless it holds one of ``allowed`` coefficient counts (injection, propagation and the
+        outflow take 4; lookup also 9)."""
+        if _coefficients(values) not in allowed:
+            raise ValueError(f"this stage takes grids of {allowed} SH coefficients per colour, "
+                             f"not {tuple(getattr(values, 'shape', np.shape(values)))}")
         if isinstance(values, GLGrid):
             return values, False
         return self.upload(values), True
 
-    def zeros(self, resolution: int) -> GLGrid:
-        buf = self.ctx.buffer(reserve=resolution**3 * 48)
-        self._run(self._program("clear"), resolution**3 * 12, [buf])
-        return GLGrid(buf, resolution)
+    def zeros(self, resolution: int, coefficients: int = 4) -> GLGrid:
+        out = GLGrid(None, resolution, coefficients=coefficients)
+        out.buffer = self.ctx.buffer(reserve=out.nbytes)
+        self._run(self._program("clear"), out.nbytes // 4, [out.buffer])
+        return out
 
     def finish(self) -> None:
         self.ctx.finish()
@@ -1212,8 +1319,10 @@ class GLBackend:
                        capture_outflow, readback, keep_gpu) -> propagation.PropagationResult:
         """propagation._propagate_ordinates on the GPU: unfold once, step (one dispatch per
         octant) until the moved flux falls below ``min_fraction`` of the unfolded flux, fold
-        the accumulated flux (+ the injected grid) once. None if the flux textures would exceed
-        GL_MAX_3D_TEXTURE_SIZE (the caller runs the numpy code)."""
+        the accumulated flux into bands 0-2 (+ the injected grid, extended to band 2 as
+        ordinates.emission_band2) once: values (R, R, R, 3, 9), the outflow 4 moments. None if
+        the flux textures would exceed GL_MAX_3D_TEXTURE_SIZE (the caller runs the numpy
+        code)."""
         octants, slots = _dom_layout()
         r = injected.resolution if isinstance(injected, GLGrid) else injected.shape[0]
         pad = 1 if capture_outflow else 0
@@ -1274,12 +1383,14 @@ class GLBackend:
                 if fraction < min_fraction:
                     early = True
                     break
-            out = GLGrid(self.ctx.buffer(reserve=src.nbytes), r)
+            out = GLGrid(None, r, coefficients=sh.BANDS2)  # bands 0-2, as numpy's
+            out.buffer = self.ctx.buffer(reserve=out.nbytes)
             fold = self._program("dom_fold")
             _set_tiles(fold, tiles)
             fold["use_acc"].value = int(done > 0)
             fold["R"].value, fold["pad"].value = r, pad
             fold["add_injected"].value = 1
+            fold["band2"].value = 1
             acc.bind_to_image(0, read=True, write=False)
             self._run(fold, r**3, [src.buffer, out.buffer])
             outflow_values = None
@@ -1289,6 +1400,7 @@ class GLBackend:
                     folded = self._buffer("dom_outflow_moments", cells * 48)
                     fold["R"].value, fold["pad"].value = rf, 0
                     fold["add_injected"].value = 0
+                    fold["band2"].value = 0  # the outflow stays 4 moments (hand-on)
                     outflow.bind_to_image(0, read=True, write=False)
                     self._run(fold, cells, [src.buffer, folded])
                     outflow_values[:] = np.frombuffer(folded.read(size=cells * 48),
@@ -1304,7 +1416,11 @@ class GLBackend:
                 src.release()
 
     def flux(self, values) -> np.ndarray:
-        """Mirror of ``propagation.flux``: flux per colour held by a grid."""
+        """Mirror of ``propagation.flux``: flux per colour held by a grid (a 9-coefficient
+        grid is read back and summed by numpy)."""
+        if _coefficients(values) != 4:
+            self.fallbacks += 1
+            return propagation.flux(values.read() if isinstance(values, GLGrid) else values)
         cur, owned = self._as_gpu(values)
         try:
             _, f = self._prepare_scale(cur, "kd10", "scale_a")
@@ -1316,18 +1432,21 @@ class GLBackend:
     def add_scaled(self, dst: GLGrid, src: GLGrid, weight: float) -> None:
         """dst += weight x src on the GPU (the engine's per-light combine)."""
         prog = self._program("add_scaled")
+        if src.shape != dst.shape:
+            raise ValueError(f"add_scaled: {src.shape} onto {dst.shape}")
         prog["weight"].value = float(weight)
-        self._run(prog, src.cells * 12, [src.buffer, dst.buffer])
+        self._run(prog, src.nbytes // 4, [src.buffer, dst.buffer])
 
     # -- lookup ---------------------------------------------------------------------------------
     def _lookup(self, grid: Grid, values, positions, normals, offset_cells: float, mode: int,
                 visibility=None):
         positions = np.asarray(positions, np.float64)
         m = positions.shape[0]
-        width = 12 if mode == 0 else 3
+        k = _coefficients(values)
+        width = 3 * k if mode == 0 else 3
         if m == 0:
             return np.zeros((0, width), np.float64)
-        g, owned = self._as_gpu(values)
+        g, owned = self._as_gpu(values, GRID_COEFFICIENTS)
         try:
             pbuf = self._upload_f64("recv_pos", positions)
             nbuf = self._upload_f64("recv_nrm", normals) if normals is not None else pbuf
@@ -1337,10 +1456,12 @@ class GLBackend:
             gain = REPROJECTION_GAIN if mode == 1 else 1.0
             prog["k_irr"].value = float(gain / grid.cell_size**2)
             prog["mode"].value = mode
+            prog["nine"].value = int(k == sh.BANDS2)
             table = self._cosine_table(prog)
             vis = self._visibility(visibility, grid.resolution)
             prog["use_vis"].value = int(vis is not None)
             vis = vis if vis is not None else self._buffer("no_vis", 4)
+            g.buffer.bind_to_storage_buffer(6)  # the float view (values9) of the same grid
             self._run(prog, m, [g.buffer, pbuf, nbuf, out, table, vis])
             res = np.frombuffer(out.read(size=m * width * 4), np.float32).reshape(m, width)
             return res.astype(np.float64)
@@ -1362,15 +1483,16 @@ class GLBackend:
 
     def sample(self, grid: Grid, values, positions: np.ndarray,
                visibility=None) -> np.ndarray:
-        """Mirror of ``lookup.sample``: trilinear SH (M, 3, 4)."""
+        """Mirror of ``lookup.sample``: trilinear SH (M, 3, K), K = the grid's coefficients."""
         return self._lookup(grid, values, positions, None, 0.0, 0,
-                            visibility).reshape(-1, 3, 4)
+                            visibility).reshape(-1, 3, _coefficients(values))
 
     def irradiance(self, grid: Grid, values, positions: np.ndarray, normals: np.ndarray,
                    offset_cells: float = 0.5, angular: str = "sh", visibility=None,
                    **extra) -> np.ndarray:
-        """Mirror of ``lookup.irradiance``: indirect irradiance (M, 3) in W/m^2
-        (unknown keywords: the numpy code)."""
+        """Mirror of ``lookup.irradiance``: indirect irradiance (M, 3) in W/m^2 (unknown
+        keywords: the numpy code). A 9-coefficient grid (a "dom" propagation's) is read with
+        sh.irradiance_weights' kernel, whatever ``angular``, as numpy reads it."""
         if angular not in ("sh",) + closure.LOBE_MODELS or extra:
             from . import lookup
 
@@ -1378,8 +1500,11 @@ class GLBackend:
             values = values.read() if isinstance(values, GLGrid) else values
             return lookup.irradiance(grid, values, positions, normals, offset_cells,
                                      angular=angular, visibility=visibility, **extra)
-        return self._lookup(grid, values, positions, normals, offset_cells,
-                            1 if angular == "sh" else 2, visibility)
+        if _coefficients(values) == sh.BANDS2:  # bands 0-2 whatever the model, as numpy
+            mode = 3
+        else:
+            mode = 1 if angular == "sh" else 2
+        return self._lookup(grid, values, positions, normals, offset_cells, mode, visibility)
 
     def discard(self, obj) -> None:
         """Free a GLGrid this backend returned (no-op for anything else)."""
@@ -1426,6 +1551,12 @@ def backend() -> GLBackend:
     return _BACKEND
 
 
+def _coefficients(values) -> int:
+    """SH coefficients per colour of a numpy grid or GLGrid (its last axis)."""
+    shape = values.shape if isinstance(values, GLGrid) else np.shape(values)
+    return int(shape[-1]) if shape else 0
+
+
 def _check_reprojection(reprojection: str) -> None:
     if reprojection not in propagation.REPROJECTIONS:
         raise ValueError(f"reprojection must be one of {propagation.REPROJECTIONS}, "
@@ -1468,7 +1599,7 @@ def flux(values: np.ndarray) -> np.ndarray:
 
 def sample(grid: Grid, values: np.ndarray, positions: np.ndarray,
            visibility: np.ndarray | None = None) -> np.ndarray:
-    """``lookup.sample`` on the GPU: (M, 3, 4) float64."""
+    """``lookup.sample`` on the GPU: (M, 3, K) float64."""
     return backend().sample(grid, values, positions, visibility)
 
 

@@ -1,7 +1,8 @@
 """The LPV grid: a regular lattice of cells holding 2-band SH per colour channel.
 
 Storage is (R, R, R, 3, 4) float32 indexed [x, y, z, colour, coefficient]. A cell's value is
-the radiant intensity (W/sr) of the light passing through it [KD10 sec. 4].
+the radiant intensity (W/sr) of the light passing through it [KD10 sec. 4]. A propagated
+discrete-ordinates grid (``angular="dom"``) has 9 coefficients, bands 0-2 (sh.evaluate_basis2).
 """
 
 from __future__ import annotations
@@ -28,8 +29,8 @@ class Grid:
         r = self.resolution
         return (r, r, r, 3, 4)
 
-    def zeros(self) -> np.ndarray:
-        return np.zeros(self.shape, np.float32)
+    def zeros(self, coefficients: int = 4) -> np.ndarray:
+        return np.zeros(self.shape[:4] + (coefficients,), np.float32)
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         lo = self.origin_array

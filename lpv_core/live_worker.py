@@ -9,8 +9,9 @@ go to stderr). Bulk arrays travel as .npz files in a folder the client owns:
 
     {"id": 1, "cmd": "update", "scene": "in.npz", "reply": "out.npz"}
         -> {"id": 1, "ok": true, "stats": {...}, "has_gi": true}
-           out.npz: grid origin/cell_size/resolution, values (R,R,R,3,4), per-light grids,
-           a VPL sample, the propagation visibility (occlusion, clip areas) if any
+           out.npz: grid origin/cell_size/resolution, values (R,R,R,3,K) float32 (K = 9 SH
+           coefficients for angular="dom", else 4), per-light and inner-cascade grids of
+           the same K, a VPL sample, the propagation visibility (occlusion, clip areas) if any
     {"id": 2, "cmd": "render", "scene": "in.npz", "exr": "f.exr", "passes": "p.npz"}
         -> deferred render of the scene's camera: EXR (atomic) and/or passes npz
     {"id": 3, "cmd": "quit"}
@@ -127,7 +128,8 @@ def _cosine_table(n: int = 64):
 
 
 def save_result(path: str, result, scene: Scene) -> None:
-    """Write an LPVResult for the viewport: combined and per-light grids, VPLs, visibility."""
+    """Write an LPVResult for the viewport: combined, per-light and inner-cascade grids
+    ((R,R,R,3,K) float32, K = 4 or 9 coefficients, written as they are), VPLs, visibility."""
     out = {}
     if result.grid is not None:
         out["origin"] = np.asarray(result.grid.origin, np.float64)

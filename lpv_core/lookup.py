@@ -21,19 +21,21 @@ REPROJECTION_GAIN = np.pi / (sh.C0**2 + sh.C1**2)  # = 12/7
 
 def sample(grid: Grid, values: np.ndarray, positions: np.ndarray,
            visibility: np.ndarray | None = None) -> np.ndarray:
-    """Trilinear SH samples (M, 3, 4) at world positions (M, 3); zero outside the grid.
-    With ``visibility``, corners behind occluders are left out (injection.visible_corners)."""
+    """Trilinear SH samples (M, 3, K) at world positions (M, 3), K = values.shape[-1] (4, or 9
+    for a discrete-ordinates grid); zero outside the grid. With ``visibility``, corners behind
+    occluders are left out (injection.visible_corners)."""
     m = positions.shape[0]
+    k_coeffs = values.shape[-1]
     if m == 0:
-        return np.zeros((0, 3, 4), np.float32)
+        return np.zeros((0, 3, k_coeffs), np.float32)
     coords = grid.cell_coords(positions)
     idx, wts = trilinear_corners(coords, grid.resolution)
     wts = visible_corners(coords, idx, wts, visibility, grid.resolution)
-    flat = values.reshape(-1, 12)
-    out = np.zeros((m, 12), np.float64)
+    flat = values.reshape(-1, 3 * k_coeffs)
+    out = np.zeros((m, 3 * k_coeffs), np.float64)
     for k in range(8):
         out += wts[k][:, None] * flat[idx[k]]
-    return out.reshape(m, 3, 4)
+    return out.reshape(m, 3, k_coeffs)
 
 
 def irradiance(
@@ -47,14 +49,22 @@ def irradiance(
 ) -> np.ndarray:
     """Indirect irradiance (M, 3) in W/m^2 at receivers; samples half a cell along the normal.
 
-    ``angular="m1"``: the cell is read as its maximum-entropy lobe (closure.py), and the flux
-    that passed through it becomes irradiance Phi E[max(0, <-n, w>)] / s^2, exact for a beam
-    (Phi / s^2 head-on) and for an isotropic field (Phi / (4 s^2) = pi L).
+    A 9-coefficient grid (``angular="dom"``: the flux per direction folded into bands 0-2) is
+    read with the irradiance kernel of sh.irradiance_weights, exact for the clamped cosine up to
+    band 2 (Ramamoorthi & Hanrahan 2001): a beam, an isotropic field and a uniform hemisphere
+    (light leaving a lit floor: a floor receives none of it) all come out right to within the
+    kernel's band 4. ``angular="m1"`` (and a 4-coefficient "dom" grid): the cell is read as its
+    maximum-entropy lobe (closure.py), and the flux that passed through it becomes irradiance
+    Phi E[max(0, <-n, w>)] / s^2, exact for a beam (Phi / s^2 head-on) and for an isotropic
+    field (Phi / (4 s^2) = pi L), but it reads a hemisphere as a lobe with a tail behind it.
     """
     positions = np.asarray(positions, np.float64)
     normals = np.asarray(normals, np.float64)
     coeffs = sample(grid, values, positions + normals * (offset_cells * grid.cell_size),
                     visibility)
+    if coeffs.shape[-1] == sh.BANDS2:
+        e = np.einsum("mcs,ms->mc", coeffs, sh.irradiance_weights(normals))
+        return np.maximum(e / (grid.cell_size**2), 0.0)
     if angular in closure.LOBE_MODELS:
         held, r, d = closure.moments(coeffs)  # (M, 3), (M, 3), (M, 3, 3)
         t = -np.einsum("mcx,mx->mc", d, normals)

@@ -11,7 +11,12 @@ cell length per step semi-Lagrangian (trilinear split over the 8 cells it lands 
 the M1 bundles are), and the moments are folded back only once, for the lookup. Transport is
 linear and each direction keeps its own light, so crossing beams pass through each other and
 light from a diffuse patch spreads as it should; flux is conserved exactly (weights sum to
-one, transmittances <= 1). Cost per step: 64 directions x 8 neighbours per cell and colour
+one, transmittances <= 1). The lookup's grid is folded into SH bands 0-2 (9 coefficients,
+not KD10's 4): a two-moment lobe cannot tell a beam from the uniform hemisphere of light above
+a lit floor, and read as a lobe that hemisphere has a tail behind it that lights the floor with
+its own light; band 2 tells them apart, and the irradiance kernel is exact to band 2 (lookup.py).
+Light handed on to the next cascade stays 4 moments. Cost per step: 64 directions x 8
+neighbours per cell and colour
 (the M1 step: 27 x 4 x 64). The angular grid is the same Fibonacci sphere as the M1 bundles
 (propagation.quadrature_directions), each direction standing for 4 pi / 64 sr.
 
@@ -80,12 +85,36 @@ def unfold(values: np.ndarray) -> np.ndarray:
     return out.reshape(len(dirs), 3, *shape)
 
 
-def fold(flux: np.ndarray) -> np.ndarray:
-    """(q, 3, R, R, R) flux per direction -> (R, R, R, 3, 4) moments (sum of flux x Y(w))."""
-    _, basis, _ = tables()
+def fold(flux: np.ndarray, coefficients: int = 4) -> np.ndarray:
+    """(q, 3, R, R, R) flux per direction -> (R, R, R, 3, 4 or 9) SH (sum of flux x Y(w)):
+    4 moments (what hand-on between cascades injects) or bands 0-2 (the lookup's grid)."""
+    dirs, basis, _ = tables()
+    if coefficients == sh.BANDS2:
+        basis = sh.evaluate_basis2(dirs).astype(np.float32)
+    elif coefficients != 4:
+        raise ValueError(f"fold to 4 or {sh.BANDS2} coefficients, not {coefficients}")
     q = flux.shape[0]
-    m = (basis.T @ flux.reshape(q, -1)).reshape(4, *flux.shape[1:])
+    m = (basis.T @ flux.reshape(q, -1)).reshape(coefficients, *flux.shape[1:])
     return np.ascontiguousarray(m.transpose(2, 3, 4, 1, 0))
+
+
+def emission_band2(values: np.ndarray) -> np.ndarray:
+    """(..., 4) injected moments -> (..., 9): band 2 of the light ``unfold`` reads them as
+    (closure.emission_density, axially symmetric around the mean direction d), added in closed
+    form: c_2m = Phi E[P2(<d, w>)] Y_2m(d). For cos^n, E[P2] = n / (n + 3); for r <= 1/2 (a
+    uniform hemisphere mixed with an isotropic part) E[P2] = 0."""
+    c = np.asarray(values, np.float32)
+    out = np.zeros(c.shape[:-1] + (sh.BANDS2,), np.float32)
+    out[..., :4] = c
+    lit = c[..., 0] > 0
+    if lit.any():
+        held, r, d = closure.moments(c[lit])
+        rr = np.clip(r.astype(np.float64), 0.5 + 1e-6, closure.LAMBERTIAN_MEAN_COSINE)
+        n = (2.0 * rr - 1.0) / (1.0 - rr)
+        p2 = np.where(r > 0.5, n / (n + 3.0), 0.0)
+        band2 = sh.evaluate_basis2(d)[..., 4:]
+        out[..., 4:][lit] = (held * p2)[..., None] * band2
+    return out
 
 
 def pad(flux: np.ndarray) -> np.ndarray:

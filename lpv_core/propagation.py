@@ -292,6 +292,12 @@ class PropagationResult:
     outflow: np.ndarray | None = None
 
 
+def coefficients(angular: str) -> int:
+    """SH coefficients per colour of a propagated grid: 9 (bands 0-2) for "dom", whose
+    per-direction flux is folded once for the lookup, else KD10's 4."""
+    return sh.BANDS2 if angular == "dom" else 4
+
+
 def propagate(
     injected: np.ndarray,
     iterations: int,
@@ -390,8 +396,8 @@ def _propagate_ordinates(injected, iterations, min_fraction, visibility, occlude
         if fraction < min_fraction:
             early = True
             break
-    values = ordinates.fold(np.ascontiguousarray(ordinates.interior(acc, r)))
-    values += injected.astype(np.float32)
+    values = ordinates.fold(np.ascontiguousarray(ordinates.interior(acc, r)), sh.BANDS2)
+    values += ordinates.emission_band2(injected)
     if outflow is not None:
         q = outflow.shape[0]
         outflow = ordinates.fold(outflow.reshape(q, 3, r + 2, r + 2, r + 2))

@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import deferred, demo, engine, propagation
+from . import deferred, demo, engine, propagation, sh
 from .scene import Camera, GISettings, Light, Material, Scene, make_scene
 
 # Tolerances the tests assert (and the report draws). In exact arithmetic the engine is
@@ -593,7 +593,8 @@ def _propagate_storage(injected: np.ndarray, steps: int, dtype,
         cur = nxt
     if dom:
         with np.errstate(over="ignore", invalid="ignore"):
-            return propagation.ordinates.fold(acc.astype(np.float32)) + injected
+            return (propagation.ordinates.fold(acc.astype(np.float32), sh.BANDS2)
+                    + propagation.ordinates.emission_band2(injected))
     return acc.astype(np.float32)
 
 

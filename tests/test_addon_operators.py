@@ -41,7 +41,7 @@ def test_update_computes_the_lpv_in_the_worker(box):
     assert cur is not None and cur.values is not None
     r = properties.PRESETS["DRAFT"][2]["grid_resolution"]  # the preset the fixture chose
     assert cur.grid.resolution == r
-    assert cur.values.shape == (r, r, r, 3, 4) and np.abs(cur.values).max() > 0
+    assert cur.values.shape == (r, r, r, 3, 9) and np.abs(cur.values).max() > 0  # "dom": bands 0-2
     assert set(cur.per_light) == {"Spot"}
     assert cur.vpl_position.shape[0] > 100
     assert cur.stats["ms"]["rsm"] > 0 and cur.stats["ms"]["propagation"] > 0

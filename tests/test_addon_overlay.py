@@ -61,11 +61,12 @@ def shot(mode, clear=(0, 0, 0, 0), **kw):
     buf.dimensions = W * H * 4
     return np.array(buf.to_list(), np.float32).reshape(H, W, 4)[::-1]  # top row first
 
+from lpv_core import deferred, live_worker, lookup, sh
+from lpv_core.grid import Grid
 from lpv_core.scene import GISettings
-# The fast model for most shots (the overlay's job is the same in every model); each model
-# is compared once below.
-FAST = {k: v for k, v in (("angular", "sh"), ("direction_groups", 1))
-        if k in GISettings.__dataclass_fields__}
+# The default model ("dom": 9 SH coefficients per colour) for most shots; each model is
+# compared once below.
+FAST = {k: v for k, v in (("direction_groups", 1),) if k in GISettings.__dataclass_fields__}
 
 def expected(**overrides):
     passes, _ = live.render_passes(scene, (W, H), overrides={**FAST, **overrides})
@@ -75,11 +76,88 @@ def refresh():
     live.mark_dirty("test")
     live.refresh(scene, wait=True, overrides=FAST)
 
+def synthetic(coefficients, angular, seed, visibility):
+    # The overlay of a made-up grid on a plane z = 0 seen straight on by an orthographic
+    # camera (pixel centres are known world points) and lookup.irradiance there: 8 x 8 quads
+    # of 8 x 8 pixels, each with its own normal facing the camera, so bands 1 and 2 vary.
+    rng = np.random.default_rng(seed)
+    grid = Grid((-1.2, -1.2, -1.2), 0.3, 8)
+    values = rng.normal(0.0, 0.3, (8, 8, 8, 3, coefficients)).astype(np.float32)
+    values[..., 0] = rng.uniform(1.0, 2.0, (8, 8, 8, 3))
+    vis = rng.uniform(0.0, 1.0, (6, 8, 8, 8)).astype(np.float32) if visibility else None
+    q = 8
+    normals = rng.normal(0.0, 1.0, (q * q, 3))
+    normals[:, 2] = np.abs(normals[:, 2]) + 0.3
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    tris, nrms = [], []
+    for k in range(q * q):
+        x0, y0 = -1.0 + 2.0 * (k % q) / q, -1.0 + 2.0 * (k // q) / q
+        x1, y1 = x0 + 2.0 / q, y0 + 2.0 / q
+        tris += [[(x0, y0, 0), (x1, y0, 0), (x1, y1, 0)],
+                 [(x0, y0, 0), (x1, y1, 0), (x0, y1, 0)]]
+        nrms += [[normals[k]] * 3] * 2
+    t = len(tris)
+    geometry = {"positions": np.array(tris, np.float32), "normals": np.array(nrms, np.float32),
+                "albedo": np.ones((t, 3), np.float32), "receiver": np.ones(t, bool)}
+    live.STATE.serial += 1
+    result = live.LiveResult(
+        serial=live.STATE.serial, grid=grid, values=values, per_light={}, lights=[],
+        settings=GISettings(angular=angular), areas=[], geometry=geometry, visibility=vis,
+        cosine_table=live_worker._cosine_table())
+    view = np.eye(4)
+    view[2, 3] = -5.0  # camera at z = 5 looking down -z
+    proj = np.diag([1.0, 1.0, -0.2, 1.0])  # orthographic, x, y in [-1, 1], z in [0, 10]
+    proj[2, 3] = -1.0
+    off = gpu.types.GPUOffScreen(W, H, format="RGBA32F")
+    with off.bind():
+        fb = gpu.state.active_framebuffer_get()
+        fb.clear(color=(0, 0, 0, 0), depth=1.0)
+        overlay.draw(view, proj, mode="INDIRECT", depth_prepass=True, current=result,
+                     previous=None)
+        buf = fb.read_color(0, 0, W, H, 4, 0, "FLOAT")
+    off.free()
+    buf.dimensions = W * H * 4
+    got = np.array(buf.to_list(), np.float32).reshape(H, W, 4)[::-1, :, :3]
+    # pixel centres (top row first), the normal of the quad each lies in
+    j, i = np.meshgrid(np.arange(W), np.arange(H))
+    x, y = -1.0 + (j + 0.5) * 2.0 / W, 1.0 - (i + 0.5) * 2.0 / H
+    quad = np.clip(((y + 1.0) / 2.0 * q).astype(int), 0, q - 1) * q \
+        + np.clip(((x + 1.0) / 2.0 * q).astype(int), 0, q - 1)
+    pos = np.stack([x, y, np.zeros_like(x)], axis=-1).reshape(-1, 3)
+    pos[:, 2] += deferred.VIEWER_NUDGE_CELLS * grid.cell_size  # deferred.toward_viewer
+    e = lookup.irradiance(grid, values, pos, normals[quad.ravel()], angular=angular,
+                          visibility=vis)
+    # interior pixels of each quad (an edge pixel may go to either neighbour), and with
+    # visibility none whose sample lies on a plane where the nearest cell changes (the
+    # visible corners jump there: float and double may pick either side)
+    inner = ((j % (W // q)) > 0) & ((j % (W // q)) < W // q - 1) \
+        & ((i % (H // q)) > 0) & ((i % (H // q)) < H // q - 1)
+    c = (pos + normals[quad.ravel()] * (0.5 * grid.cell_size) - grid.origin_array) \
+        / grid.cell_size - 0.5
+    tie = (np.abs(c - np.floor(c) - 0.5) < 0.01).any(axis=1).reshape(H, W)
+    inner &= ~tie if vis is not None else True
+    return got, (e / np.pi).reshape(H, W, 3).astype(np.float32), inner
+
 warm_up()
 res = {}
-# Both angular models of the engine ("sh": KD10's clamped SH; "m1": max-entropy lobe), when
-# the engine has them: the shader mirrors each lookup.
-models = ["sh", "m1"] if "angular" in GISettings.__dataclass_fields__ else []
+# The overlay's shader against lookup.irradiance on made-up grids: 9 coefficients (the
+# irradiance kernel, with propagation visibility), 4 read as "sh" and as "m1".
+for name, k, angular, vis in (("syn9", sh.BANDS2, "dom", True), ("syn4_sh", 4, "sh", False),
+                              ("syn4_m1", 4, "m1", True)):
+    res[name], res[name + "_expect"], res[name + "_inner"] = synthetic(k, angular, 7, vis)
+
+# PROBES glyphs of a 9-coefficient cell: the radius follows the function of all 9 coefficients.
+g1 = Grid((0.0, 0.0, 0.0), 1.0, 1)
+one = np.zeros((1, 1, 1, 3, sh.BANDS2), np.float32)
+one[..., :] = sh.evaluate_basis2(np.array([0.0, 0.0, 1.0]))  # a beam along +z
+pos9, col9 = overlay.probe_glyphs(g1, one)
+res["probe9_pos"], res["probe9_col"] = pos9, col9
+pos4, _ = overlay.probe_glyphs(g1, np.ascontiguousarray(one[..., :4]))
+res["probe4_pos"] = pos4
+
+# The engine's angular models ("dom": discrete ordinates, 9 coefficients; "sh": KD10's
+# clamped SH; "m1": max-entropy lobe), when the engine has them: the shader mirrors each lookup.
+models = ["dom", "sh", "m1"] if "angular" in GISettings.__dataclass_fields__ else []
 for model in models:
     live.refresh(scene, wait=True, overrides={**FAST, "angular": model})
     res["model_" + model] = shot("INDIRECT")
@@ -93,6 +171,7 @@ res["expect_cascaded"] = expected()
 scene.lpv.cascades = 1
 refresh()
 base = live.STATE.current
+res["coefficients"] = np.array(base.values.shape[-1])
 res["indirect"] = shot("INDIRECT")
 res["expect"] = expected()
 res["add"] = shot("ADD", clear=(0.1, 0.2, 0.3, 1.0))
@@ -167,7 +246,7 @@ def test_indirect_only_matches_the_deferred_lookup(shots):
     assert got[expect.max(axis=2) == 0].max() < 1e-6
 
 
-@pytest.mark.parametrize("model", ["sh", "m1"])
+@pytest.mark.parametrize("model", ["dom", "sh", "m1"])
 def test_both_angular_models_match(shots, model):
     if f"model_{model}" not in shots:
         pytest.skip(f"the engine has no angular model {model!r}")
@@ -175,6 +254,44 @@ def test_both_angular_models_match(shots, model):
     m = _mask(expect)
     rel = np.abs(got[m] - expect[m]) / expect[m]
     assert np.median(rel) < 0.01 and np.percentile(rel, 95) < 0.05, model
+
+
+def test_default_model_draws_nine_coefficients(shots):
+    assert int(shots["coefficients"]) == 9  # angular="dom": bands 0-2
+
+
+@pytest.mark.parametrize("name", ["syn9", "syn4_sh", "syn4_m1"])
+def test_shader_repeats_lookup_irradiance(shots, name):
+    """Per pixel, the fragment shader gives lookup.irradiance / pi of the grid (9 coefficients:
+    the irradiance kernel; 4: the clamped SH or the "m1" lobe), up to half-float storage."""
+    got, expect, inner = shots[name], shots[name + "_expect"], shots[name + "_inner"]
+    assert inner.sum() > 0.5 * W * H
+    lit = inner & (expect.max(axis=2) > 0.05 * expect.max())
+    assert lit.sum() > 0.4 * W * H
+    err = np.abs(got[lit] - expect[lit])
+    rel = err / expect[lit]
+    print(f"\n{name}: median rel {np.median(rel):.2e}, p99 {np.percentile(rel, 99):.2e}, "
+          f"max abs / peak {err.max() / expect.max():.2e}")
+    assert np.median(rel) < 2e-3
+    assert np.percentile(rel, 99) < 2e-2
+    assert err.max() < 2e-2 * expect.max()
+    # Where the lookup clamps to zero the shader does too.
+    dark = inner & (expect.max(axis=2) == 0)
+    assert got[dark].max(initial=0.0) < 1e-3 * expect.max()
+
+
+def test_probe_glyphs_read_nine_coefficients(shots):
+    """A beam along +z in 9 coefficients: its glyph reaches furthest along +z, and its lobe is
+    narrower than the 4-coefficient one (band 2 sharpens it)."""
+    pos9, col9, pos4 = shots["probe9_pos"], shots["probe9_col"], shots["probe4_pos"]
+    assert pos9.shape[0] > 0 and pos9.shape[0] == col9.shape[0] == pos4.shape[0]
+    assert np.isfinite(pos9).all() and np.isfinite(col9).all()
+    d9, d4 = pos9 - 0.5, pos4 - 0.5  # the cell centre
+    far = d9[np.argmax(np.linalg.norm(d9, axis=1))]
+    assert far[2] > 0.99 * np.linalg.norm(far)
+    side9 = np.linalg.norm(d9[:, :2], axis=1).max() / np.linalg.norm(d9, axis=1).max()
+    side4 = np.linalg.norm(d4[:, :2], axis=1).max() / np.linalg.norm(d4, axis=1).max()
+    assert side9 < side4
 
 
 def test_cascades_add_up_like_the_renderer(shots):

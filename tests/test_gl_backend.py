@@ -340,3 +340,95 @@ def test_dom_runs_on_the_gpu(gl):
         propagation.step(injected, angular="dom")
     with pytest.raises(ValueError, match="dom"):
         gl.step(injected, angular="dom")
+
+
+@pytest.mark.parametrize("occluded", [False, True])
+def test_dom_values_hold_bands_0_to_2(gl, occluded):
+    """angular="dom" folds into bands 0-2 (R, R, R, 3, 9): the propagated flux plus the
+    injected grid extended to band 2 (ordinates.emission_band2); the outflow stays 4 moments.
+    Each band is compared on its own scale (band 2 is smaller than band 0)."""
+    be = gl.backend()
+    r = 11
+    g = _grid(r, seed=31)
+    rng = np.random.default_rng(31)
+    pos, nrm, flux = _vpls(g, 1500, rng, spread=0.0)
+    injected = injection.inject(g, pos, nrm, flux)
+    vis = _visibility(r, rng) if occluded else None
+    before = be.fallbacks
+    for kw in ({"iterations": 7}, {"iterations": 0}, {"iterations": 5, "capture_outflow": True},
+               {"iterations": 5, "capture_outflow": True, "occlude_first_step": True}):
+        ref = propagation.propagate(injected, angular="dom", visibility=vis, **kw)
+        got = be.propagate(injected, angular="dom", visibility=vis, **kw)
+        assert ref.values.shape == got.values.shape == (r, r, r, 3, 9)
+        assert got.values.dtype == np.float32
+        assert np.abs(ref.values[..., 4:]).max() > 1e-3 * np.abs(ref.values).max()  # band 2 held
+        what = f"dom bands 0-2 vis={occluded} {kw}"
+        _agree(got.values, ref.values, what)
+        _agree(got.values[..., 4:], ref.values[..., 4:], what + " band 2")
+        if kw.get("capture_outflow"):
+            assert got.outflow.shape == ref.outflow.shape == (r + 2, r + 2, r + 2, 3, 4)
+            _agree(got.outflow, ref.outflow, what + " outflow")
+        else:
+            assert got.outflow is None and ref.outflow is None
+    # Kept on the GPU: a 9-coefficient GLGrid, read back and looked up as numpy's.
+    on_gpu = be.inject(g, pos, nrm, flux)
+    res = be.propagate(on_gpu, 5, angular="dom", visibility=vis, readback=False, keep_gpu=True)
+    ref = propagation.propagate(injected, 5, angular="dom", visibility=vis)
+    assert res.values is None and res.gpu.coefficients == 9 and res.gpu.shape == ref.values.shape
+    assert res.gpu.nbytes == ref.values.nbytes
+    _agree(res.gpu.read(), ref.values, "dom kept on the GPU")
+    np.testing.assert_allclose(be.flux(res.gpu), propagation.flux(ref.values), rtol=1e-5)
+    with pytest.raises(ValueError, match="coefficients"):  # propagation takes 4 moments
+        be.propagate(res.gpu, 2, angular="dom")
+    on_gpu.release()
+    res.gpu.release()
+    assert be.fallbacks == before + 1  # flux of a 9-coefficient grid: numpy after a readback
+
+
+@pytest.mark.parametrize("r", [6, 13])
+def test_lookup_of_bands_0_to_2_agrees(gl, r):
+    """A 9-coefficient grid is read with sh.irradiance_weights whatever the angular model, on
+    the GPU as in lookup.irradiance; sample returns (M, 3, 9)."""
+    be = gl.backend()
+    g = _grid(r, seed=40 + r, far=(r == 13))
+    rng = np.random.default_rng(40 + r)
+    values = rng.normal(size=(r, r, r, 3, 9)).astype(np.float32)
+    values[..., 0] = np.abs(values[..., 0]) * 3.0
+    m = 4000
+    pos = g.origin_array + rng.uniform(-1.0, r + 1.0, (m, 3)) * g.cell_size  # some outside
+    nrm = rng.normal(size=(m, 3))
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    vis = _visibility(r, rng)
+    before = be.fallbacks
+    on_gpu = be.upload(values)
+    assert on_gpu.coefficients == 9 and on_gpu.shape == values.shape
+    np.testing.assert_array_equal(on_gpu.read(), values)
+    for v in (None, vis):
+        occ = v is not None
+        ref = lookup.sample(g, values, pos, v)
+        got = be.sample(g, values, pos, v)
+        assert got.shape == ref.shape == (m, 3, 9)
+        _agree(got, ref, f"sample 9 coefficients {r}^3 occluded={occ}")
+        for angular in ("sh", "m1", "dom"):
+            ref = lookup.irradiance(g, values, pos, nrm, angular=angular, visibility=v)
+            got = be.irradiance(g, values, pos, nrm, angular=angular, visibility=v)
+            assert got.dtype == ref.dtype and got.shape == ref.shape == (m, 3)
+            assert (ref > 0).any() and (ref == 0).any()  # clamped somewhere, lit elsewhere
+            _agree(got, ref, f"irradiance 9 coefficients {r}^3 {angular} occluded={occ}")
+        _agree(be.irradiance(g, on_gpu, pos, nrm, angular="dom", visibility=v),
+               lookup.irradiance(g, values, pos, nrm, angular="dom", visibility=v),
+               f"irradiance of a 9-coefficient GLGrid occluded={occ}")
+    assert be.irradiance(g, values, pos[:0], nrm[:0]).shape == (0, 3)
+    assert be.sample(g, values, pos[:0]).shape == (0, 3, 9)
+    on_gpu.release()
+    assert be.fallbacks == before
+    with pytest.raises(ValueError):
+        be.upload(values[..., :5])
+
+
+def test_auto_measurement_runs_dom(gl):
+    """measure() looks up a "dom" propagated grid (9 coefficients) on both backends."""
+    ms = gl.measure(resolution=8, vpls=512, receivers=1024, iterations=2, repeat=1,
+                    angular="dom")
+    assert set(ms) == set(gl.STAGES)
+    assert all(ms[stage][name] > 0 for stage in gl.STAGES for name in ("numpy", "gl"))
