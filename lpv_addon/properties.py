@@ -22,12 +22,12 @@ from ._core import core
 # Quality presets: name -> (label, description, settings).
 PRESETS = {
     "DRAFT": ("Draft", "12^3 grid, 128^2 RSM: fastest (Cornell box indirect error 0.24)", {
-        "grid_resolution": 12, "rsm_resolution": 128, "iterations": 0, "cascades": 1}),
+        "grid_resolution": 12, "rsm_resolution": 128, "iterations": 0, "cascades": 3}),
     "PREVIEW": ("Preview", "16^3 grid, 256^2 RSM: the default (Cornell box indirect error 0.22)", {
-        "grid_resolution": 16, "rsm_resolution": 256, "iterations": 0, "cascades": 1}),
+        "grid_resolution": 16, "rsm_resolution": 256, "iterations": 0, "cascades": 3}),
     "HIGH": ("High", ("24^3 grid, 512^2 RSM: 3-15x Preview's time; finer cells, less error "
                       "(Cornell box 0.19, point-lit room 0.15)"), {
-        "grid_resolution": 24, "rsm_resolution": 512, "iterations": 0, "cascades": 1}),
+        "grid_resolution": 24, "rsm_resolution": 512, "iterations": 0, "cascades": 3}),
 }
 _APPLYING_PRESET = [False]
 # Defaults follow the core's GISettings, so the add-on and scripts start from the same place.
@@ -105,7 +105,12 @@ class LPVSceneSettings(bpy.types.PropertyGroup):
                                  description="Cells per side of each LPV cascade")
     cascades: IntProperty(name="Cascades", default=_CORE.cascades, min=1, max=4,
                           update=_setting_changed,
-                          description="Nested LPV grids, cell size doubling")
+                          description=("Nested LPV grids, cell size doubling: at most this many "
+                                       "with Auto Cascades, else exactly"))
+    cascades_auto: BoolProperty(
+        name="Auto Cascades", default=_CORE.cascades_auto, update=_setting_changed,
+        description=("Use as many cascades as the view needs: one when the camera is inside a "
+                     "closed space, more when it sees open ground stretching far from it"))
     iterations: IntProperty(
         name="Iterations", default=_CORE.iterations, min=0, max=1000, update=_setting_changed,
         description="Propagation steps (0: automatic)",

@@ -80,7 +80,8 @@ class Engine:
         self._cache: dict = {}
         self._plans: dict = {}  # the planner's cascade decisions for the last chain
         self._bounds = None  # (geometry key, lo, hi, outside count, outside area share)
-        self._focus_cache = None  # (geometry + camera key, visible points)
+        self._focus_cache = None  # (geometry + camera key, visible points, sky share)
+        self._cascade_count = None  # planner.cascade_count of the last update (hysteresis)
         self._last_chain = None  # the cascades of the last update (placement hysteresis)
         self._cache_base = self._cache_chain = None  # the cache's key without inner cascades
         self._refl_key = None  # reflectance digest the cached grids were made with
@@ -202,11 +203,11 @@ class Engine:
             stats.skip("lpv", "scene", "no geometry")
             stats.ms["lpv_update"] = 0.0
             return LPVResult(None, None, {}, stats)
-        if settings.angular == "dom":  # a clear error before any work, not a MemoryError
-            ordinates.check_memory(settings.grid_resolution, settings.cascades > 1)
         with Timer(stats, "change_tracking"):
             geo = geometry_key(scene)
         lo, hi, chain = self._chain(scene, stats, geo)
+        if settings.angular == "dom":  # a clear error before the RSMs, not a MemoryError
+            ordinates.check_memory(settings.grid_resolution, len(chain) > 1)
         grid = chain[-1]
         active = _active_lights(scene, stats)
         with Timer(stats, "change_tracking"):
@@ -258,13 +259,21 @@ class Engine:
         what the camera sees, held still within a cell, pruned by the planner."""
         settings = scene.settings
         lo, hi = self.lpv_bounds(scene, stats, geo)
-        focus = None
+        focus, count = None, settings.cascades
         if settings.cascades > 1 and scene.camera is not None:
-            focus = self._focus(scene, stats, geo)
-        chain = self._steady(cascades.place(lo, hi, settings.grid_resolution,
-                                            settings.cascades, scene.camera, focus))
-        if len(chain) == 1 and settings.cascades > 1:
-            stats.skip("cascades", f"{settings.cascades - 1} inner cascades",
+            focus, sky = self._focus(scene, stats, geo)
+            if settings.cascades_auto:
+                eye = np.linalg.inv(np.asarray(scene.camera.view, np.float64))[:3, 3]
+                count, why = planner.cascade_count(settings.cascades, lo, hi, eye, focus, sky,
+                                                   self._cascade_count)
+                self._cascade_count = count
+                stats.info["cascade_count"] = {"count": count, "why": why}
+                if count < settings.cascades:
+                    stats.skip("cascades", f"{settings.cascades - count} inner cascades", why)
+        chain = self._steady(cascades.place(lo, hi, settings.grid_resolution, count,
+                                            scene.camera, focus))
+        if len(chain) == 1 and count > 1:
+            stats.skip("cascades", f"{count - 1} inner cascades",
                        "no camera to centre them on")
         with Timer(stats, "planner"):
             chain = self._plan_cascades(scene, chain, stats, geo)
@@ -373,9 +382,10 @@ class Engine:
         self._last_chain = chain
         return chain
 
-    def _focus(self, scene: Scene, stats: Stats, geo: str) -> np.ndarray:
-        """World positions the camera sees, from a FOCUS_PIXELS^2 G-buffer (cascade
-        placement), cached per geometry and camera."""
+    def _focus(self, scene: Scene, stats: Stats, geo: str) -> tuple[np.ndarray, float]:
+        """(world positions the camera sees, share of its pixels that see no geometry), from a
+        FOCUS_PIXELS^2 G-buffer (cascade count and placement), cached per geometry and
+        camera."""
         key = (geo, np.asarray(scene.camera.view, np.float64).tobytes(),
                np.asarray(scene.camera.projection, np.float64).tobytes())
         if self._focus_cache is None or self._focus_cache[0] != key:
@@ -386,8 +396,9 @@ class Engine:
                 frame = self.raster.render(scene.camera.view, scene.camera.projection,
                                            max(1, round(w * scale)), max(1, round(h * scale)))
                 points = frame.position[frame.covered].astype(np.float64)
-            self._focus_cache = (key, points)
-        return self._focus_cache[1]
+                sky = 1.0 - float(np.mean(frame.covered)) if frame.covered.size else 1.0
+            self._focus_cache = (key, points, sky)
+        return self._focus_cache[1], self._focus_cache[2]
 
     def _plan_cascades(self, scene: Scene, chain: list, stats: Stats, geo: str) -> list:
         """The chain without the cascades the planner finds no work for (cached per chain)."""

@@ -79,6 +79,55 @@ def _grid_label(grid: Grid) -> str:
 
 # ---------------------------------------------------------------------------------- cascades
 
+# How many cascades a view needs (cascade_count). The finest cascade should resolve the nearest
+# part of what the camera sees as finely, in angle, as the outer cascade resolves the scene
+# from a distance of its own width: each cascade halves the cell, so n - 1 = log2(extent / d),
+# d the distance to the nearest tenth of the visible surface (KD10 sec. 4.1: cell size grows
+# with the distance to the camera, as with cascaded shadow maps).
+NEAR_QUANTILE = 0.10
+# A count is kept until log2(extent / d) is this far past the rounding boundary (0.5): a
+# camera moving back and forth does not make the cascade count, and all propagation, flip.
+COUNT_HYSTERESIS = 0.25
+# An enclosed view (the camera inside the scene's box, sky in under this share of the view)
+# keeps one cascade. Measured against Cycles (96 x 96, "dom"): a room lit by a point light
+# 0.173 / 0.174 / 0.175 with 1 / 2 / 3 cascades, a sunlit room 0.531 / 0.503 / 0.503, a
+# 16 m library 0.365 / 0.358 / 0.357, at 1.5-3x the time: the light stays inside the room,
+# which one grid already resolves. Open views gain: sun yard 1.56 / 1.07 / 1.02, a 200 m
+# city 1.09 / 0.94 / 0.83.
+ENCLOSED_SKY_SHARE = 0.05
+
+
+def cascade_count(max_count: int, lo, hi, eye, visible: np.ndarray, sky_share: float,
+                  previous: int | None = None) -> tuple[int, str]:
+    """(number of cascades, why) for a view: ``visible`` (N, 3) surface points the camera
+    sees (a small G-buffer), ``sky_share`` the share of its pixels that see no geometry,
+    ``previous`` the count of the last update (hysteresis). At most ``max_count``."""
+    max_count = max(int(max_count), 1)
+    if max_count == 1:
+        return 1, "one cascade allowed"
+    if eye is None:
+        return 1, "no camera to centre finer cascades on"
+    lo, hi, eye = (np.asarray(v, np.float64) for v in (lo, hi, eye))
+    if visible is None or len(visible) == 0:
+        return 1, "the camera sees no geometry"
+    inside = bool(np.all(eye >= lo) and np.all(eye <= hi))
+    if inside and sky_share < ENCLOSED_SKY_SHARE:
+        return 1, (f"enclosed view: the camera is inside the scene and sees geometry in "
+                   f"{100 * (1 - sky_share):.0f}% of its pixels (the light stays in a space "
+                   "one grid resolves)")
+    extent = float(np.max(hi - lo))
+    near = float(np.quantile(np.linalg.norm(np.asarray(visible, np.float64) - eye, axis=1),
+                             NEAR_QUANTILE))
+    ratio = np.log2(extent / near) if near > 0 and extent > 0 else 0.0
+    count = int(np.clip(1 + np.floor(ratio + 0.5), 1, max_count))
+    if (previous is not None and 1 <= previous <= max_count and previous != count
+            and abs(ratio - (previous - 1)) <= 0.5 + COUNT_HYSTERESIS):
+        count = previous
+    return count, (f"the nearest tenth of the view is {near:.3g} m away, the scene "
+                   f"{extent:.3g} m wide (log2 ratio {ratio:.2f}): {count} of at most "
+                   f"{max_count} cascades")
+
+
 def cascade_plan(chain: list[Grid], scene: Scene) -> list[Decision]:
     """One Decision per cascade of ``chain`` (finest first, as cascades.place returns it).
 

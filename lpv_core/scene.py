@@ -102,7 +102,8 @@ class GISettings:
     """Quality and artist settings for one LPV update."""
 
     grid_resolution: int = 16
-    cascades: int = 1
+    cascades: int = 3  # at most this many; with cascades_auto the planner picks per view
+    cascades_auto: bool = True  # planner.cascade_count: 1 for an enclosed view, more if open
     iterations: int = 0  # 0: automatic (engine.auto_iterations)
     reprojection: str = "kd10"  # side-face re-emission: "kd10" (paper) or "ray"
     # Transport: "dom" flux along 64 directions (ordinates.py), "m1" a max-entropy lobe per

@@ -263,7 +263,7 @@ def test_engine_skips_empty_cascades_and_unreachable_lights_and_says_why():
                                power=1000.0),
                         _light("Wall", "SPOT", (30, 0, 10), (-1, 0, -0.2),
                                spot_size=np.radians(30), power=1000.0)],
-                settings=GISettings(grid_resolution=12, cascades=3))
+                settings=GISettings(grid_resolution=12, cascades_auto=False, cascades=3))
     sc.camera = Camera.look_at((30, 0, 2), (30.5, 0.3, 40))
     stats = Stats()
     res = engine.Engine().update(sc, stats)
@@ -288,3 +288,91 @@ def test_engine_skips_the_geometry_volume_without_occluders_in_the_grid():
     occ = _skips(stats, "occlusion")
     assert len(occ) == 1 and occ[0]["reason"] == "no occluder in the scene"
     assert res.visibility is None and "geometry_volume" not in stats.ms
+
+
+# ------------------------------------------------------------------------------ cascade count
+def _view_at(distances, eye=(-10.0, 0.0, 5.0)):
+    """Visible points at the given distances from ``eye`` along +x."""
+    eye = np.asarray(eye, float)
+    return eye, eye + np.outer(np.asarray(distances, float), [1.0, 0.0, 0.0])
+
+
+def test_cascade_count_follows_the_nearest_part_of_an_open_view():
+    """n - 1 = round(log2(extent / d)), d the distance to the nearest tenth of the visible
+    surface: each cascade halves the cell, so the finest one resolves the near part of the
+    view as the outer one resolves the scene."""
+    lo, hi = (0.0, 0.0, 0.0), (100.0, 100.0, 10.0)
+    for near, expect in ((100.0, 1), (50.0, 2), (25.0, 3), (12.0, 3), (160.0, 1)):
+        eye, pts = _view_at(np.linspace(near, near * 3, 101))
+        count, why = planner.cascade_count(3, lo, hi, eye, pts, sky_share=0.4)
+        assert count == expect, (near, count, why)
+        assert f"{1.2 * near:.3g} m" in why and "100 m wide" in why  # 10 % quantile: 1.2 near
+    eye, pts = _view_at(np.linspace(12.0, 36.0, 101))
+    assert planner.cascade_count(2, lo, hi, eye, pts, 0.4)[0] == 2  # capped by the setting
+    assert planner.cascade_count(1, lo, hi, eye, pts, 0.4)[0] == 1
+
+
+def test_cascade_count_is_one_for_an_enclosed_view_and_scale_free():
+    lo, hi = np.zeros(3), np.array([16.0, 10.0, 4.0])
+    eye = np.array([2.0, 5.0, 1.6])
+    pts = eye + np.outer(np.linspace(1.0, 14.0, 50), [1.0, 0.0, 0.0])
+    count, why = planner.cascade_count(3, lo, hi, eye, pts, sky_share=0.0)
+    assert count == 1 and "enclosed view" in why
+    # the same room with a large opening to the sky is an open view: the ratio decides
+    open_count = planner.cascade_count(3, lo, hi, eye, pts, sky_share=0.3)[0]
+    assert open_count == min(3, 1 + round(np.log2(16.0 / np.quantile(np.linspace(1, 14, 50), 0.1))))
+    for k in (1e-3, 1e3):  # the decision depends on ratios only
+        assert planner.cascade_count(3, lo * k, hi * k, eye * k, pts * k, 0.3)[0] == open_count
+    assert planner.cascade_count(3, lo, hi, eye, np.zeros((0, 3)), 0.3)[0] == 1
+    assert planner.cascade_count(3, lo, hi, None, pts, 0.3)[0] == 1
+
+
+def test_cascade_count_holds_within_the_hysteresis_band():
+    """A count changes only when log2(extent / d) is COUNT_HYSTERESIS past the rounding
+    boundary, so a camera moving back and forth near it does not flip the whole LPV."""
+    lo, hi = (0.0, 0.0, 0.0), (100.0, 100.0, 10.0)
+
+    def at(log_ratio, previous):
+        near = 100.0 / 2.0**log_ratio
+        eye, pts = _view_at(np.full(20, near))
+        return planner.cascade_count(3, lo, hi, eye, pts, 0.5, previous)[0]
+
+    assert at(1.6, None) == 3 and at(1.6, 2) == 2  # past 1.5 but within the band: hold 2
+    assert at(1.8, 2) == 3  # beyond it: change
+    assert at(0.4, None) == 1 and at(0.4, 2) == 2 and at(0.2, 2) == 1
+
+
+def test_engine_picks_the_cascade_count_per_view_and_says_why():
+    """On built scenes: the street-level outdoor view gets all 3 cascades, a camera inside a
+    closed room and the Cornell box seen from outside get one; the stats say why."""
+    from lpv_core import engine
+
+    cases = {"outdoor": (demo.outdoor((48, 32), GISettings(grid_resolution=8, rsm_resolution=32)),
+                         3),
+             "room": (demo.two_rooms(GISettings(grid_resolution=8, rsm_resolution=32)), 1),
+             "cornell": (demo.cornell_box("SPOT", (24, 24), GISettings(grid_resolution=8,
+                                                                       rsm_resolution=32)), 1)}
+    for name, (sc, expect) in cases.items():
+        assert sc.settings.cascades == 3 and sc.settings.cascades_auto  # the defaults
+        stats = Stats()
+        res = engine.Engine().update(sc, stats)
+        info = stats.info["cascade_count"]
+        assert info["count"] == expect, (name, info)
+        assert len(res.fine) + 1 <= expect
+        if expect < 3:
+            assert any(s["stage"] == "cascades" and s["reason"] == info["why"]
+                       for s in stats.skipped), name
+    assert "enclosed view" in stats_reason(cases["room"][0])
+    fixed = demo.outdoor((48, 32), GISettings(grid_resolution=8, rsm_resolution=32,
+                                              cascades=2, cascades_auto=False))
+    stats = Stats()
+    engine.Engine().update(fixed, stats)
+    assert "cascade_count" not in stats.info and len(stats.info["cascades"]) == 2
+
+
+def stats_reason(scene) -> str:
+    from lpv_core import engine
+
+    stats = Stats()
+    engine.Engine().update(scene, stats)
+    return stats.info["cascade_count"]["why"]

@@ -131,7 +131,7 @@ def test_multiple_bounces_run_with_cascades_and_converge():
 
     means = []
     for bounces in (1, 2, 3):
-        settings = GISettings(grid_resolution=12, cascades=2, bounces=bounces)
+        settings = GISettings(grid_resolution=12, cascades_auto=False, cascades=2, bounces=bounces)
         scene = demo.cornell_box("SPOT", (32, 32), settings)
         res = engine.Engine().update(scene)
         assert len(res.fine) == 1
