@@ -211,6 +211,22 @@ def _pool():
     return _POOL[0]
 
 
+def _advance_octant(src: np.ndarray, row: list, out: np.ndarray) -> None:
+    """Add one octant's arrivals to ``out`` (zeroed, same shape as ``src``): only the flat range
+    of cells holding its light is read."""
+    live = np.flatnonzero(src.any(axis=(0, 1)))
+    if live.size == 0:
+        return
+    lo, hi = int(live[0]), int(live[-1]) + 1
+    part = src[:, :, lo:hi]
+    buf = np.empty_like(part)
+    for shift, weight, vis in row:
+        np.multiply(part, weight if weight.shape[-1] == 1 else weight[..., lo:hi], out=buf)
+        if vis is not None:
+            buf *= vis[..., lo:hi]
+        out[:, :, lo + shift:hi + shift] += buf
+
+
 def advance(flat: np.ndarray, factor_table: list) -> np.ndarray:
     """One step on the padded flat layout: every direction's flux moves one cell length.
 
@@ -220,22 +236,8 @@ def advance(flat: np.ndarray, factor_table: list) -> np.ndarray:
     (light reflected by a lit floor alone never travels down: half the octants stay empty).
     Octants run on a thread pool (``_pool``); each writes only its own slice of directions."""
     out = np.zeros_like(flat)
-
-    def octant(item) -> None:
-        sl, row = item
-        live = np.flatnonzero(flat[sl].any(axis=(0, 1)))
-        if live.size == 0:
-            return
-        lo, hi = int(live[0]), int(live[-1]) + 1
-        src = flat[sl, :, lo:hi]
-        buf = np.empty_like(src)
-        for shift, weight, vis in row:
-            np.multiply(src, weight if weight.shape[-1] == 1 else weight[..., lo:hi], out=buf)
-            if vis is not None:
-                buf *= vis[..., lo:hi]
-            out[sl, :, lo + shift:hi + shift] += buf
-
-    for _ in _pool().map(octant, factor_table):  # re-raises an octant's exception here
+    for _ in _pool().map(lambda item: _advance_octant(flat[item[0]], item[1], out[item[0]]),
+                         factor_table):  # iterating re-raises an octant's exception here
         pass
     return out
 
@@ -244,11 +246,22 @@ def loop_step(flat: np.ndarray, factor_table: list, r: int, acc: np.ndarray,
               outflow: np.ndarray | None = None) -> tuple[np.ndarray, float]:
     """One step of the propagation loop (propagation.propagate, angular="dom"): advance,
     move what left the grid to ``outflow`` (or drop it), add the arrivals to ``acc``.
-    Returns the new light and the flux it holds (float64 sum: the early-stop test)."""
-    nxt = advance(flat, factor_table)
-    take_shell(nxt, r, outflow)
-    acc += nxt
-    return nxt, float(nxt.sum(dtype=np.float64))
+    Returns the new light and the flux it holds (float64 sum: the early-stop test).
+    A direction's light stays in its octant's slice, so each octant does all of this for its
+    own slice on the thread pool."""
+    nxt = np.empty_like(flat)
+
+    def octant(item) -> float:
+        sl, row = item
+        out = nxt[sl]
+        out[...] = 0.0
+        _advance_octant(flat[sl], row, out)
+        take_shell(out, r, None if outflow is None else outflow[sl])
+        acc[sl] += out
+        return float(out.sum(dtype=np.float64))
+
+    moved = sum(_pool().map(octant, factor_table))
+    return nxt, moved
 
 
 def step(flux: np.ndarray, offset_visibility: list | None = None) -> np.ndarray:
