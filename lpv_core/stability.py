@@ -123,11 +123,12 @@ def growth(steps) -> float:
 
 @contextlib.contextmanager
 def record_steps():
-    """Wrap ``propagation.step`` to log (flux in, flux out) of every step and keep the first
-    chain's input (the injected grid). Yields the log dict {"steps": [...], "injected": ...}."""
+    """Wrap ``propagation.step`` (and "dom"'s ordinates.loop_step) to log (flux in, flux out)
+    of every step and keep the first chain's input (the injected grid). Yields the log dict
+    {"steps": [...], "injected": ...}."""
     log: dict = {"steps": [], "injected": None, "_last": None}
     original = propagation.step
-    unfold, advect = propagation.ordinates.unfold, propagation.ordinates.advance
+    unfold, loop_step = propagation.ordinates.unfold, propagation.ordinates.loop_step
 
     def wrapped(values, *args, **kwargs):
         out = original(values, *args, **kwargs)
@@ -143,19 +144,21 @@ def record_steps():
             log["injected"] = np.array(values, copy=True)
         return unfold(values)
 
-    def advected(flux, *args, **kwargs):
-        out = advect(flux, *args, **kwargs)
-        log["steps"].append((float(flux.sum(dtype=np.float64)),
-                             float(out.sum(dtype=np.float64))))
-        return out
+    def stepped(flat, factor_table, *args, **kwargs):
+        # All arrivals, those that leave the grid included (loop_step drops or keeps them
+        # apart): advance is the same step, run once more here for the log.
+        arrived = propagation.ordinates.advance(flat, factor_table)
+        log["steps"].append((float(flat.sum(dtype=np.float64)),
+                             float(arrived.sum(dtype=np.float64))))
+        return loop_step(flat, factor_table, *args, **kwargs)
 
     propagation.step = wrapped
-    propagation.ordinates.unfold, propagation.ordinates.advance = unfolded, advected
+    propagation.ordinates.unfold, propagation.ordinates.loop_step = unfolded, stepped
     try:
         yield log
     finally:
         propagation.step = original
-        propagation.ordinates.unfold, propagation.ordinates.advance = unfold, advect
+        propagation.ordinates.unfold, propagation.ordinates.loop_step = unfold, loop_step
 
 
 def _nonfinite(*arrays) -> int:
