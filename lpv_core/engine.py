@@ -82,6 +82,7 @@ class Engine:
         self._bounds = None  # (geometry key, lo, hi, outside count, outside area share)
         self._focus_cache = None  # (geometry + camera key, visible points, sky share)
         self._cascade_count = None  # planner.cascade_count of the last update (hysteresis)
+        self._count_memo = None  # (inputs, result) of the last cascade_count
         self._last_chain = None  # the cascades of the last update (placement hysteresis)
         self._cache_base = self._cache_chain = None  # the cache's key without inner cascades
         self._refl_key = None  # reflectance digest the cached grids were made with
@@ -263,9 +264,13 @@ class Engine:
         if settings.cascades > 1 and scene.camera is not None:
             focus, sky = self._focus(scene, stats, geo)
             if settings.cascades_auto:
-                eye = np.linalg.inv(np.asarray(scene.camera.view, np.float64))[:3, 3]
-                count, why = planner.cascade_count(settings.cascades, lo, hi, eye, focus, sky,
-                                                   self._cascade_count)
+                memo = (self._focus_cache[0], settings.cascades, lo.tobytes(), hi.tobytes(),
+                        self._cascade_count)
+                if self._count_memo is None or self._count_memo[0] != memo:
+                    eye = np.linalg.inv(np.asarray(scene.camera.view, np.float64))[:3, 3]
+                    self._count_memo = (memo, planner.cascade_count(
+                        settings.cascades, lo, hi, eye, focus, sky, self._cascade_count))
+                count, why = self._count_memo[1]
                 self._cascade_count = count
                 stats.info["cascade_count"] = {"count": count, "why": why}
                 if count < settings.cascades:
@@ -680,11 +685,19 @@ def combine(grid: Grid, per_light: dict, lights, intensity: float) -> np.ndarray
     re-combine cached grids without recomputing them."""
     held = [v for v in per_light.values() if v is not None]
     combined = grid.zeros(held[0].shape[-1] if held else 4)
+    k = combined.shape[-1]
+    flat = combined.reshape(-1, 3 * k)  # colour weights broadcast along the last axis (fast)
+    scratch = np.empty_like(flat)
     for light in lights:
         values = per_light.get(light.name)
-        if values is not None:
-            combined += light_weight(light) * values
-    combined *= np.float32(intensity)
+        if values is None:
+            continue
+        w = light_weight(light)[:, 0] * np.float32(intensity)
+        if w[0] == w[1] == w[2]:  # an untinted light: one scalar (3x faster than per colour)
+            np.multiply(values.reshape(flat.shape), w[0], out=scratch)
+        else:
+            np.multiply(values.reshape(flat.shape), np.repeat(w, k), out=scratch)
+        flat += scratch
     return combined
 
 
