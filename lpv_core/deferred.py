@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import areas, direct
+from . import areas, direct, lookup
 from .engine import Engine, LPVResult, Stats, Timer
 from .scene import Scene
 
@@ -76,13 +76,12 @@ def render(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats | None = N
                 backend = engine.backend(scene.settings)  # the lookup runs where it is fastest
                 finest = min([lpv.grid.cell_size] + [g.cell_size for g, _, _ in lpv.fine])
                 at = toward_viewer(scene.camera, pos, VIEWER_NUDGE_CELLS * finest)
-                e_ind[recv] = backend.irradiance(lpv.grid, lpv.values, at[recv], nrm[recv],
-                                                 angular=scene.settings.angular,
-                                                 visibility=lpv.visibility)
-                for fine_grid, fine_values, fine_vis in lpv.fine:  # inner cascades add theirs
-                    e_ind[recv] += backend.irradiance(fine_grid, fine_values, at[recv],
-                                                      nrm[recv], angular=scene.settings.angular,
-                                                      visibility=fine_vis)
+                levels = [(lpv.grid, lpv.values, lpv.visibility)] + list(lpv.fine)
+                for grid, values, vis in levels:  # inner cascades add theirs
+                    e_ind[recv] += backend.irradiance(
+                        grid, values, lookup.sample_points(grid, at[recv], nrm[recv], lpv.gaps.get(grid)),
+                        nrm[recv], offset_cells=0.0, angular=scene.settings.angular,
+                        visibility=vis)
                 if areas.has_transition(scene.areas):
                     e_ind *= areas.transition_factor(scene.areas, pos)
                 diff_ind[mask] = e_ind / np.pi

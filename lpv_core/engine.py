@@ -67,6 +67,9 @@ class LPVResult:
     # Finer cascades inside ``grid`` (finest first): (Grid, combined values, visibility);
     # lookups add them.
     fine: list = field(default_factory=list)
+    # Grid -> geometry_volume.cell_gaps of its occluders (or None): where lookups must not
+    # sample (lookup.gap_corrected)
+    gaps: dict = field(default_factory=dict)
 
 
 class Engine:
@@ -223,7 +226,8 @@ class Engine:
                 self._cache_key = None  # the next update is the refresh
                 stats.info["refresh_pending"] = True
                 return self._result(chain, per_light, vpl_sample, active, settings.intensity,
-                                    visibilities, stats, 0, [], t0)
+                                    visibilities, stats, 0, [], t0,
+                                    {g: self.gaps(g) for g in chain})
         if key != self._cache_key:
             self._cache_key, self._cache = key, {}
             self._cache_base, self._cache_chain = base, chain
@@ -253,7 +257,8 @@ class Engine:
             per_light[light.name], vpl_sample[light.name] = grids, sample
             vpl_count += count
         return self._result(chain, per_light, vpl_sample, active, settings.intensity,
-                            visibilities, stats, vpl_count, run.iterations, t0)
+                            visibilities, stats, vpl_count, run.iterations, t0,
+                            {g: self.gaps(g) for g in chain})
 
     def _chain(self, scene: Scene, stats: Stats, geo: str):
         """The LPV box (lo, hi) and this update's cascade chain (finest first): placed around
@@ -327,7 +332,7 @@ class Engine:
 
     @staticmethod
     def _result(chain, per_light, vpl_sample, active, intensity, visibilities, stats, vpl_count,
-                iterations, t0) -> LPVResult:
+                iterations, t0, gaps=None) -> LPVResult:
         """Combine per-light grids (per cascade) into the LPVResult."""
         with Timer(stats, "combine"):
             levels = [combine(g, {n: v[c] for n, v in per_light.items()}, active,
@@ -337,7 +342,8 @@ class Engine:
         stats.ms["lpv_update"] = (time.perf_counter() - t0) * 1000.0
         outer = {n: v[-1] for n, v in per_light.items()}
         return LPVResult(chain[-1], levels[-1], outer, stats, vpl_sample, visibilities[-1],
-                         [(g, levels[c], visibilities[c]) for c, g in enumerate(chain[:-1])])
+                         [(g, levels[c], visibilities[c]) for c, g in enumerate(chain[:-1])],
+                         gaps)
 
     def _reprojected(self, chain, base, active, stats: Stats):
         """(per-light grids, VPL samples) shifted by whole cells to ``chain`` when the last
@@ -459,10 +465,15 @@ class Engine:
         """propagation_visibility, cached with the per-light grids (same scene key)."""
         key = ("visibility", grid.origin, grid.cell_size)
         if key not in self._cache:
-            self._cache[key] = propagation_visibility(scene, grid, stats)
+            self._cache[key] = occlusion(scene, grid, stats)
         elif stats is not None:
             stats.skip("geometry_volume", f"grid {grid.cell_size:.4g} m", "unchanged: reused")
-        return self._cache[key]
+        return self._cache[key][0]
+
+    def gaps(self, grid: Grid):
+        """geometry_volume.cell_gaps of ``grid``'s occluders from the last update, or None."""
+        entry = self._cache.get(("visibility", grid.origin, grid.cell_size))
+        return None if entry is None else entry[1]
 
     def _cached(self, light, stats: Stats, report: bool = True):
         """(grids per cascade, VPL sample) of ``light`` if nothing it depends on changed
@@ -496,9 +507,10 @@ class Engine:
             with Timer(stats, "bounces"):
                 e = np.zeros((pos2.shape[0], 3))
                 for c, g in enumerate(chain):
-                    e += run.backend.irradiance(g, previous[c], pos2, nrm2,
-                                                angular=settings.angular,
-                                                visibility=run.visibilities[c])
+                    e += run.backend.irradiance(
+                        g, previous[c], lookup.sample_points(g, pos2, nrm2, self.gaps(g)), nrm2,
+                        offset_cells=0.0, angular=settings.angular,
+                        visibility=run.visibilities[c])
                 flux = e * area2 * refl2
                 keep = flux.max(axis=1) > 0
             if not keep.any():
@@ -707,7 +719,13 @@ def propagation_visibility(scene: Scene, grid: Grid, stats: Stats | None = None)
     The one place where every propagation visibility term is combined (multiplied): clip
     areas (areas.clip_visibility); occlusion terms multiply in here too.
     """
-    visibility = None
+    return occlusion(scene, grid, stats)[0]
+
+
+def occlusion(scene: Scene, grid: Grid, stats: Stats | None = None):
+    """(propagation_visibility, the occluders' geometry_volume.cell_gaps or None): what
+    propagation and lookups need to know about the grid's occluders."""
+    visibility = gaps = None
     if areas.has_clip(scene.areas):
         visibility = areas.clip_visibility(grid, scene.areas)
         if stats is not None:
@@ -719,11 +737,11 @@ def propagation_visibility(scene: Scene, grid: Grid, stats: Stats | None = None)
         else:
             t0 = time.perf_counter()
             occluders = scene.flag("occluder")
-            gv = geometry_volume.occluder_visibility(grid, scene.positions[occluders])
+            gv, gaps = geometry_volume.occluder_volume(grid, scene.positions[occluders])
             visibility = gv if visibility is None else visibility * gv
             if stats is not None:
                 stats.add_ms("geometry_volume", time.perf_counter() - t0)
-    return visibility
+    return visibility, gaps
 
 
 def auto_iterations(resolution: int, angular: str = "sh") -> int:

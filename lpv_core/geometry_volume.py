@@ -160,12 +160,10 @@ def _max3(a: np.ndarray) -> np.ndarray:
     return np.maximum(np.maximum(a[:, 0], a[:, 1]), a[:, 2])
 
 
-def face_transmittance(grid: Grid, triangles: np.ndarray) -> np.ndarray:
-    """(6, R, R, R) fraction of light a cell sends across each of its faces (AXES order):
-    1 - face_coverage of the occluding triangles (T, 3, 3), cut into half-cell sub-triangles."""
+def _transmittance(grid: Grid, coverage: np.ndarray) -> np.ndarray:
+    """(6, R, R, R) per-cell transmittance (AXES order) from face_coverage (3, R + 1, R, R)."""
     r = grid.resolution
-    sub = _subdivide(triangles, SURFEL_SPACING * grid.cell_size)[0]
-    trans = 1.0 - face_coverage(grid, sub)  # (3, R+1, R, R)
+    trans = 1.0 - coverage
     vis = np.empty((6, r, r, r), np.float32)
     for axis in range(3):
         t = np.moveaxis(trans[axis], 0, axis)  # plane index along the grid axis
@@ -176,6 +174,76 @@ def face_transmittance(grid: Grid, triangles: np.ndarray) -> np.ndarray:
         vis[2 * axis] = t[tuple(hi)]
         vis[2 * axis + 1] = t[tuple(lo)]
     return vis
+
+
+def face_offsets(grid: Grid, sub_triangles: np.ndarray, normals: np.ndarray,
+                 areas: np.ndarray) -> np.ndarray:
+    """(3, R + 1, R, R) mean signed distance, in cells, from each face plane to the occluding
+    surface face_coverage put on it (weighted by projected area; 0 where none): where the
+    surface really is, in [-1/2, 1/2] of a cell around the plane that stands for it."""
+    r = grid.resolution
+    out = np.zeros((3, r + 1, r, r))
+    tri = np.asarray(sub_triangles, np.float64).reshape(-1, 3, 3)
+    if tri.shape[0] == 0:
+        return out
+    centroid = ((tri - grid.origin_array) / grid.cell_size).mean(axis=1)
+    cells = (r + 1) * r * r
+    for axis in range(3):
+        u, v = [a for a in range(3) if a != axis]
+        plane = np.floor(centroid[:, axis] + 0.5 - 1e-6).astype(np.int64)  # as face_coverage
+        iu = np.floor(centroid[:, u]).astype(np.int64)
+        iv = np.floor(centroid[:, v]).astype(np.int64)
+        w = areas * np.abs(normals[:, axis])
+        ok = ((plane >= 0) & (plane <= r) & (iu >= 0) & (iu < r) & (iv >= 0) & (iv < r)
+              & (w > 0))
+        flat = (plane[ok] * r + iu[ok]) * r + iv[ok]
+        total = np.bincount(flat, weights=w[ok], minlength=cells)
+        moment = np.bincount(flat, weights=(w * (centroid[:, axis] - plane))[ok],
+                             minlength=cells)
+        out[axis] = np.divide(moment, total, out=np.zeros(cells), where=total > 0).reshape(
+            r + 1, r, r)
+    return out
+
+
+def cell_gaps(grid: Grid, coverage: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """(6, R, R, R) per cell and face (AXES order): how deep, in cells, the slab between a
+    blocked face and the surface it stands for reaches into the cell (0: none).
+
+    A surface is put on its nearest face plane, up to half a cell from where it is. When a
+    ceiling 0.3 cells above a plane is put on it, the 0.3 cells of the cell above the plane,
+    below the real ceiling, are room air on the wrong side of the LPV's ceiling: a receiver on
+    a wall there would read the dark cell above (a black seam along every such edge).
+    lookup.gap_corrected moves sample points out of these slabs."""
+    r = grid.resolution
+    gaps = np.zeros((6, r, r, r), np.float32)
+    blocked = coverage > 0.5  # mostly covered: the face stands for the surface there
+    for axis in range(3):
+        d = np.where(blocked[axis], offsets[axis], 0.0)
+        up = np.moveaxis(np.maximum(d, 0.0), 0, axis)  # surface above plane i: cell i's slab
+        down = np.moveaxis(np.maximum(-d, 0.0), 0, axis)  # below plane i + 1: cell i's slab
+        lo = [slice(None)] * 3
+        hi = [slice(None)] * 3
+        lo[axis] = slice(0, -1)
+        hi[axis] = slice(1, None)
+        gaps[2 * axis + 1] = up[tuple(lo)]  # from cell i's lower face (plane i) upwards
+        gaps[2 * axis] = down[tuple(hi)]  # from cell i's upper face (plane i + 1) down
+    return gaps
+
+
+def occluder_volume(grid: Grid, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(propagation visibility (6, R, R, R), cell_gaps (6, R, R, R)) of occluding triangles
+    (T, 3, 3), cut into half-cell sub-triangles."""
+    sub, _, normal, area = _subdivide(triangles, SURFEL_SPACING * grid.cell_size)
+    coverage = face_coverage(grid, sub)
+    return (_transmittance(grid, coverage),
+            cell_gaps(grid, coverage, face_offsets(grid, sub, normal, area)))
+
+
+def face_transmittance(grid: Grid, triangles: np.ndarray) -> np.ndarray:
+    """(6, R, R, R) fraction of light a cell sends across each of its faces (AXES order):
+    1 - face_coverage of the occluding triangles (T, 3, 3), cut into half-cell sub-triangles."""
+    sub = _subdivide(triangles, SURFEL_SPACING * grid.cell_size)[0]
+    return _transmittance(grid, face_coverage(grid, sub))
 
 
 def occluder_visibility(grid: Grid, triangles: np.ndarray) -> np.ndarray:

@@ -17,6 +17,7 @@ from .grid import Grid
 from .injection import trilinear_corners, visible_corners
 
 REPROJECTION_GAIN = np.pi / (sh.C0**2 + sh.C1**2)  # = 12/7
+OFFSET_CELLS = 0.5  # receivers read half a cell along their normal [KD10 sec. 4.4]
 
 
 def sample(grid: Grid, values: np.ndarray, positions: np.ndarray,
@@ -38,12 +39,45 @@ def sample(grid: Grid, values: np.ndarray, positions: np.ndarray,
     return out.reshape(m, 3, k_coeffs)
 
 
+def gap_corrected(grid: Grid, positions: np.ndarray, gaps: np.ndarray | None) -> np.ndarray:
+    """Sample points (M, 3) moved out of the slabs geometry_volume.cell_gaps describes: a
+    point in a cell's slab behind a blocked face (room air the face's plane cut off) goes to
+    the centre of the neighbour across that face, along that axis only, so it reads the
+    light on its own side of the surface."""
+    p = np.asarray(positions, np.float64)
+    if gaps is None or p.shape[0] == 0:
+        return p
+    r = grid.resolution
+    rel = (p - grid.origin_array) / grid.cell_size  # face planes at integers
+    cell = np.floor(rel).astype(np.int64)
+    inside = np.all((cell >= 0) & (cell < r), axis=1)
+    out = rel.copy()
+    idx = tuple(np.clip(cell, 0, r - 1).T)
+    for axis in range(3):
+        frac = rel[:, axis] - cell[:, axis]
+        below = inside & (frac < gaps[2 * axis + 1][idx])  # in the slab above the lower face
+        above = inside & ~below & (1.0 - frac < gaps[2 * axis][idx])
+        out[below, axis] = cell[below, axis] - 0.5
+        out[above, axis] = cell[above, axis] + 1.5
+    return grid.origin_array + out * grid.cell_size
+
+
+def sample_points(grid: Grid, positions: np.ndarray, normals: np.ndarray,
+                  gaps: np.ndarray | None) -> np.ndarray:
+    """Where receivers (M, 3) read ``grid``: OFFSET_CELLS along the normal [KD10 sec. 4.4],
+    out of the slabs an occluder's plane cut off (gap_corrected). Pass the result to
+    ``irradiance`` with ``offset_cells=0``."""
+    at = np.asarray(positions, np.float64) + np.asarray(normals, np.float64) * (
+        OFFSET_CELLS * grid.cell_size)
+    return gap_corrected(grid, at, gaps)
+
+
 def irradiance(
     grid: Grid,
     values: np.ndarray,
     positions: np.ndarray,
     normals: np.ndarray,
-    offset_cells: float = 0.5,
+    offset_cells: float = OFFSET_CELLS,
     angular: str = "sh",
     visibility: np.ndarray | None = None,
 ) -> np.ndarray:

@@ -536,3 +536,53 @@ def test_sun_rsm_is_fitted_to_each_cascade():
                                rtol=0.05)
     np.testing.assert_allclose(fitted.flux[~inner_f].sum(0), single.flux[~inner].sum(0),
                                rtol=1e-6)
+
+
+def test_cell_gaps_mark_the_slab_a_snapped_occluder_cut_off():
+    """A ceiling 0.3 cells above face plane 5 is put on that plane: cell 5 holds a 0.3-cell
+    slab of room air above its lower face, and a point there is read from the cell below; a
+    ceiling 0.3 cells below plane 5 leaves the slab at the top of cell 4 (read from above)."""
+    from lpv_core import geometry_volume
+
+    g = grid.Grid((0.0, 0.0, 0.0), 1.0, 8)
+    for height, face, cell, moved_from, moved_to in ((5.3, 5, 5, 5.2, 4.5), (4.7, 4, 4, 4.8, 5.5)):
+        ceiling = demo.quad((1, 1, height), (1, 7, height), (7, 7, height), (7, 1, height))
+        vis, gaps = geometry_volume.occluder_volume(g, ceiling)
+        assert vis[4, 3, 3, 4] == pytest.approx(0.0)  # the plane between cells 4 and 5 blocks
+        assert gaps[face, 3, 3, cell] == pytest.approx(0.3, abs=1e-6)
+        assert np.count_nonzero(gaps) == 36  # the 6 x 6 cells under the quad, one face each
+        pts = np.array([[3.5, 3.5, moved_from], [3.5, 3.5, 2.0 * height - moved_from],
+                        [3.5, 3.5, 2.5], [0.5, 3.5, moved_from]])
+        out = lookup.gap_corrected(g, pts, gaps)
+        assert out[0].tolist() == [3.5, 3.5, moved_to]  # in the slab: across the plane
+        np.testing.assert_array_equal(out[1:], pts[1:])  # beyond the ceiling, far, or beside
+
+
+def test_no_dark_seam_where_a_wall_meets_a_snapped_ceiling():
+    """A 4 x 4 x 3 m room lit by a point light, at 16^3: the ceiling lies a quarter cell above
+    a face plane and is put on it, so the wall's top quarter cell is room air above the LPV's
+    ceiling. Read there without the gap correction, the wall goes dark along the edge; with it
+    the top of the wall reads like the wall just below."""
+    room = demo.box_triangles((0, 0, 0), (4, 4, 3), inward=True)
+    light = Light("Lamp", "POINT", demo.light_matrix((2.0, 2.0, 1.5), (0, 0, -1)), power=200.0)
+    sc = make_scene(room, lights=[light], settings=GISettings(grid_resolution=16,
+                                                              rsm_resolution=64))
+    res = engine.Engine().update(sc)
+    g, gaps = res.grid, res.gaps[res.grid]
+    assert gaps is not None
+    z = np.linspace(1.0, 2.99, 200)
+    wall = np.stack([np.full_like(z, 1e-4), np.full_like(z, 2.0), z], axis=1)  # x = 0 wall
+    n = np.tile([1.0, 0.0, 0.0], (len(z), 1))
+
+    def read(gaps):
+        pts = lookup.sample_points(g, wall, n, gaps)
+        return lookup.irradiance(g, res.values, pts, n, offset_cells=0.0, angular="dom",
+                                 visibility=res.visibility)[:, 0]
+
+    mid = np.median(read(gaps)[z < 2.0])
+    top = z > 3.0 - 0.25 * g.cell_size
+    plain, corrected = read(None), read(gaps)
+    print(f"\nwall top / middle: {plain[top].min() / mid:.3f} without, "
+          f"{corrected[top].min() / mid:.3f} with the gap correction")
+    assert plain[top].min() < 0.2 * mid  # the seam the correction removes
+    assert corrected[top].min() > 0.5 * mid
