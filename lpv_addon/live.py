@@ -180,6 +180,9 @@ class LiveResult:
     vpl_flux: np.ndarray | None = None
     visibility: np.ndarray | None = None  # (6, R, R, R) propagation visibility
     fine: list = field(default_factory=list)  # inner cascades: (Grid, values, visibility)
+    # Grid (``grid`` or one of ``fine``) -> geometry_volume.cell_gaps (6, R, R, R) or None:
+    # where lookups move their sample point (lookup.gap_corrected)
+    gaps: dict = field(default_factory=dict)
     cosine_table: np.ndarray | None = None
     stats: dict = field(default_factory=dict)
     arrived: float = 0.0  # time.monotonic() when it arrived (fade-in start)
@@ -314,18 +317,18 @@ def _recombine(scene, key: str, reasons: list[str], t0: float) -> LiveResult | N
         "info": dict(cur.stats.get("info", {})), "changed": list(reasons)}
     return _new_result(cur.grid, values, cur.per_light, scene, stats, key,
                        vpl=(cur.vpl_position, cur.vpl_flux), visibility=cur.visibility,
-                       cosine_table=cur.cosine_table)
+                       cosine_table=cur.cosine_table, gaps=cur.gaps)
 
 
 def _new_result(grid, values, per_light, scene, stats, key, vpl=(None, None), visibility=None,
-                cosine_table=None, fine=None) -> LiveResult:
+                cosine_table=None, fine=None, gaps=None) -> LiveResult:
     STATE.serial += 1
     return LiveResult(
         serial=STATE.serial, grid=grid, values=values, per_light=per_light,
         lights=list(scene.lights), settings=scene.settings, areas=list(scene.areas),
         geometry=_geometry(scene), vpl_position=vpl[0], vpl_flux=vpl[1], visibility=visibility,
         cosine_table=cosine_table, stats=stats, arrived=time.monotonic(), recombine_key=key,
-        fine=list(fine or []),
+        fine=list(fine or []), gaps=dict(gaps or {}),
     )
 
 
@@ -355,15 +358,20 @@ def _read_reply(reply: dict, scene, key: str, reasons: list[str], t_sent: float,
     stats["changed"] = list(reasons)
     opt = {k: (data[k] if k in data.files else None)
            for k in ("vpl_position", "vpl_flux", "visibility", "cosine_table")}
+    gaps = {}  # keyed by the very Grid objects of the result
+    if grid is not None and "gaps" in data.files:
+        gaps[grid] = data["gaps"]
     fine = []
     for i in range(int(data["fine_count"]) if "fine_count" in data.files else 0):
         g = core.grid.Grid(tuple(float(v) for v in data[f"fine_{i}_origin"]),
                            float(data[f"fine_{i}_cell_size"]), int(data[f"fine_{i}_resolution"]))
         vis = data[f"fine_{i}_visibility"] if f"fine_{i}_visibility" in data.files else None
         fine.append((g, data[f"fine_{i}_values"], vis))
+        if f"fine_{i}_gaps" in data.files:
+            gaps[g] = data[f"fine_{i}_gaps"]
     return _new_result(grid, values, per_light, scene, stats, key,
                        vpl=(opt["vpl_position"], opt["vpl_flux"]), visibility=opt["visibility"],
-                       cosine_table=opt["cosine_table"], fine=fine)
+                       cosine_table=opt["cosine_table"], fine=fine, gaps=gaps)
 
 
 def refresh(scene: bpy.types.Scene, depsgraph=None, wait: bool = False,

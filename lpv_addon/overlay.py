@@ -5,17 +5,19 @@ is uploaded as seven 3D textures (RGBA16F, scaled by the grid's largest magnitud
 floats keep their relative precision): per colour channel one with SH coefficients 0-3 (bands
 0-1) and one with coefficients 4-7 (band 2), and one whose RGB is coefficient 8 of the three
 colours (the band-2 textures hold zeros for a 4-coefficient grid), plus its propagation
-visibility (two RGB 3D textures: transmittance towards +x+y+z and -x-y-z); 10 samplers per
-draw, one draw per cascade. A fragment shader repeats ``lpv_core.lookup.irradiance`` for every
-pixel of the extracted scene geometry: sample half a cell along the viewer-facing normal,
+visibility (two RGB 3D textures: transmittance towards +x+y+z and -x-y-z) and its occluders'
+cell gaps (two RGB 3D textures, geometry_volume.cell_gaps: slab depths below the +x+y+z faces
+and above the -x-y-z faces); 12 samplers per draw, one draw per cascade. A fragment shader
+repeats ``lpv_core.lookup.irradiance`` for every pixel of the extracted scene geometry: sample
+half a cell along the viewer-facing normal, moved out of the slabs an occluder's face plane cut
+off (``lookup.sample_points`` / ``gap_corrected``; skipped for a cascade without gaps),
 trilinear over the 8 nearest cells (zero outside the grid) leaving out corners behind
 occluders and renormalising (``injection.visible_corners``), then per grid format: a
 9-coefficient grid (``angular="dom"``) with the irradiance kernel of ``sh.irradiance_weights``
 / s^2, a 4-coefficient one with the clamped-SH cosine convolution x 12/7 / s^2 ("sh") or the
 "m1" closure read through a table ("m1", 4-coefficient "dom"); clamp at zero; cascades add
-up. Indirect radiance =
-irradiance / pi x albedo, 0 where ``gi_receiver`` is off. Per-vertex shading would blur the
-LPV over large polygons (a Cornell wall is one quad). Transition areas are multiplied into the
+up. Indirect radiance = irradiance / pi x albedo, 0 where ``gi_receiver`` is off. Per-vertex
+shading would blur the LPV over large polygons (a Cornell wall is one quad). Transition areas are multiplied into the
 uploaded grids per cell (exact inside a box and far from it; the falloff is resolved at cell
 size), clip areas act in propagation and in the visibility already.
 
@@ -87,8 +89,30 @@ void main() {
     float cell = grid.w;
     /* deferred.toward_viewer: edge pixels read from the side the camera sees */
     vec3 p = v_pos + normalize(to_eye) * nudge;
+    /* lookup.sample_points: half a cell along the normal, in face-plane units */
+    vec3 rel = (p + n * (0.5 * cell) - grid.xyz) / cell;
+    if (use_gaps > 0.5) {
+        /* lookup.gap_corrected: a point in a slab behind a blocked face of its cell goes to
+           the centre of the neighbour across that face (each axis on its own, tested on the
+           uncorrected point) */
+        vec3 fl = floor(rel);
+        ivec3 gc = ivec3(fl);
+        if (all(greaterThanEqual(gc, ivec3(0))) && all(lessThan(gc, ivec3(res)))) {
+            vec3 g_up = texelFetch(gaps_plus, gc, 0).xyz;   /* slabs below the upper faces */
+            vec3 g_lo = texelFetch(gaps_minus, gc, 0).xyz;  /* slabs above the lower faces */
+            vec3 fr = rel - fl;
+            for (int a = 0; a < 3; a++) {
+                if (fr[a] < g_lo[a]) {
+                    rel[a] = fl[a] - 0.5;
+                }
+                else if (1.0 - fr[a] < g_up[a]) {
+                    rel[a] = fl[a] + 1.5;
+                }
+            }
+        }
+    }
     /* lookup.sample: continuous cell coordinates (integers on cell centres) */
-    vec3 c = (p + n * (0.5 * cell) - grid.xyz) / cell - 0.5;
+    vec3 c = rel - 0.5;
     vec3 base = floor(c);
     vec3 f = c - base;
     ivec3 ib = ivec3(base);
@@ -184,6 +208,7 @@ def _lpv_shader():
         info.push_constant("VEC4", "eye")  # eye position, 1 if orthographic
         info.push_constant("VEC4", "view_dir")  # view direction; 0 "sh", 1 "m1", 2 9 coeffs
         info.push_constant("FLOAT", "nudge")  # deferred.toward_viewer's distance
+        info.push_constant("FLOAT", "use_gaps")  # 1: move sample points (gap_corrected)
         info.sampler(0, "FLOAT_3D", "lpv_r")
         info.sampler(1, "FLOAT_3D", "lpv_g")
         info.sampler(2, "FLOAT_3D", "lpv_b")
@@ -194,6 +219,8 @@ def _lpv_shader():
         info.sampler(7, "FLOAT_3D", "lpv_g2")
         info.sampler(8, "FLOAT_3D", "lpv_b2")
         info.sampler(9, "FLOAT_3D", "lpv_c8")
+        info.sampler(10, "FLOAT_3D", "gaps_plus")
+        info.sampler(11, "FLOAT_3D", "gaps_minus")
         info.fragment_out(0, "VEC4", "FragColor")
         info.vertex_source(VERTEX_SOURCE)
         info.fragment_source(FRAGMENT_SOURCE)
@@ -232,20 +259,35 @@ def lpv_textures(grid, values: np.ndarray):
     return texs, scale
 
 
-def visibility_textures(grid, visibility):
-    """(+x, +y, +z) and (-x, -y, -z) transmittances of each cell as two RGBA16F 3D textures
-    (propagation.AXES order: +x, -x, +y, -y, +z, -z); None when nothing blocks."""
-    if visibility is None:
-        return None
-    vis = np.asarray(visibility, np.float32)
+def _axis_textures(grid, per_face: np.ndarray, fmt: str):
+    """Two 3D textures of a (6, R, R, R) per-face array in propagation.AXES order (+x, -x,
+    +y, -y, +z, -z): RGB = its +x, +y, +z entries, and its -x, -y, -z entries."""
+    arr6 = np.asarray(per_face, np.float32)
     r = grid.resolution
     out = []
     for sign in (0, 1):
         arr = np.ones((r, r, r, 4), np.float32)
         for axis in range(3):
-            arr[..., axis] = vis[2 * axis + sign]
-        out.append(_texture((r, r, r), "RGBA16F", arr.transpose(2, 1, 0, 3)))
+            arr[..., axis] = arr6[2 * axis + sign]
+        out.append(_texture((r, r, r), fmt, arr.transpose(2, 1, 0, 3)))
     return out
+
+
+def visibility_textures(grid, visibility):
+    """(+x, +y, +z) and (-x, -y, -z) transmittances of each cell as two RGBA16F 3D textures
+    (propagation.AXES order: +x, -x, +y, -y, +z, -z); None when nothing blocks."""
+    if visibility is None:
+        return None
+    return _axis_textures(grid, visibility, "RGBA16F")
+
+
+def gap_textures(grid, gaps):
+    """geometry_volume.cell_gaps (6, R, R, R) as two RGBA32F 3D textures: RGB = the depths of
+    the slabs below each cell's +x, +y, +z faces, and above its -x, -y, -z faces (32-bit: the
+    shader compares sample points with them as lookup.gap_corrected does); None without."""
+    if gaps is None:
+        return None
+    return _axis_textures(grid, gaps, "RGBA32F")
 
 
 def _c(array, n: int) -> np.ndarray:
@@ -283,17 +325,20 @@ def levels(result) -> list:
 def _result_resources(result):
     def make():
         out = []
+        gaps = getattr(result, "gaps", None) or {}
         for grid, values, visibility in levels(result):
             values = live.core.areas.apply_transition_to_grid(grid, values, result.areas)
             texs, scale = lpv_textures(grid, values)
             out.append({"grid": grid, "textures": texs, "scale": scale,
                         "coefficients": int(values.shape[-1]),
-                        "visibility": visibility_textures(grid, visibility)})
+                        "visibility": visibility_textures(grid, visibility),
+                        "gaps": gap_textures(grid, gaps.get(grid))})
         table = result.cosine_table
         if table is None:
             table = np.zeros((2, 2), np.float32)
         ones = _texture((1, 1, 1), "RGBA16F", np.ones(4, np.float32))
-        return {"levels": out, "ones": ones, "batch": _geometry_batch(result),
+        zeros = _texture((1, 1, 1), "RGBA32F", np.zeros(4, np.float32))  # no slabs
+        return {"levels": out, "ones": ones, "zeros": zeros, "batch": _geometry_batch(result),
                 "cos_table": _texture((table.shape[1], table.shape[0]), "R32F", table)}
 
     return _resource(("result", result.serial), make)
@@ -347,6 +392,8 @@ def _draw_indirect(result, mvp: Matrix, eye4, view_dir4, weight: float,
         mode = 2.0 if level["coefficients"] == live.core.sh.BANDS2 else (1.0 if lobe else 0.0)
         shader.uniform_float("view_dir", (*view_dir4[:3], mode))
         shader.uniform_float("nudge", nudge)
+        gaps = level["gaps"]
+        shader.uniform_float("use_gaps", 0.0 if gaps is None else 1.0)
         texs = level["textures"]
         for j, name in enumerate(LPV_SAMPLERS):  # a 4-coefficient grid never reads band 2
             shader.uniform_sampler(name, texs[j] if j < len(texs) else res["ones"])
@@ -354,6 +401,9 @@ def _draw_indirect(result, mvp: Matrix, eye4, view_dir4, weight: float,
         shader.uniform_sampler("vis_plus", plus)
         shader.uniform_sampler("vis_minus", minus)
         shader.uniform_sampler("cos_table", res["cos_table"])
+        g_plus, g_minus = gaps if gaps is not None else (res["zeros"], res["zeros"])
+        shader.uniform_sampler("gaps_plus", g_plus)
+        shader.uniform_sampler("gaps_minus", g_minus)
         res["batch"].draw(shader)
 
 

@@ -11,7 +11,8 @@ go to stderr). Bulk arrays travel as .npz files in a folder the client owns:
         -> {"id": 1, "ok": true, "stats": {...}, "has_gi": true}
            out.npz: grid origin/cell_size/resolution, values (R,R,R,3,K) float32 (K = 9 SH
            coefficients for angular="dom", else 4), per-light and inner-cascade grids of
-           the same K, a VPL sample, the propagation visibility (occlusion, clip areas) if any
+           the same K, a VPL sample, the propagation visibility (occlusion, clip areas) and
+           the occluders' cell gaps (geometry_volume.cell_gaps, lookup.gap_corrected) if any
     {"id": 2, "cmd": "render", "scene": "in.npz", "exr": "f.exr", "passes": "p.npz"}
         -> deferred render of the scene's camera: EXR (atomic) and/or passes npz
     {"id": 3, "cmd": "quit"}
@@ -129,7 +130,8 @@ def _cosine_table(n: int = 64):
 
 def save_result(path: str, result, scene: Scene) -> None:
     """Write an LPVResult for the viewport: combined, per-light and inner-cascade grids
-    ((R,R,R,3,K) float32, K = 4 or 9 coefficients, written as they are), VPLs, visibility."""
+    ((R,R,R,3,K) float32, K = 4 or 9 coefficients, written as they are), VPLs, visibility,
+    the cell gaps of each cascade ("gaps", "fine_{i}_gaps": (6,R,R,R) float32) where not None."""
     out = {}
     if result.grid is not None:
         out["origin"] = np.asarray(result.grid.origin, np.float64)
@@ -148,6 +150,9 @@ def save_result(path: str, result, scene: Scene) -> None:
     visibility = getattr(result, "visibility", None)
     if isinstance(visibility, np.ndarray):
         out["visibility"] = visibility.astype(np.float32)  # (6, R, R, R): lookups use it
+    gaps = getattr(result, "gaps", None) or {}
+    if result.grid is not None and gaps.get(result.grid) is not None:
+        out["gaps"] = np.asarray(gaps[result.grid], np.float32)  # (6, R, R, R)
     fine = list(getattr(result, "fine", None) or [])  # inner cascades, finest first
     out["fine_count"] = np.int64(len(fine))
     for i, (grid, values, vis) in enumerate(fine):
@@ -157,6 +162,8 @@ def save_result(path: str, result, scene: Scene) -> None:
         out[f"fine_{i}_values"] = np.asarray(values, np.float32)
         if vis is not None:
             out[f"fine_{i}_visibility"] = np.asarray(vis, np.float32)
+        if gaps.get(grid) is not None:
+            out[f"fine_{i}_gaps"] = np.asarray(gaps[grid], np.float32)
     if getattr(scene.settings, "angular", "sh") in closure.LOBE_MODELS:
         table = _cosine_table()
         if table is not None:

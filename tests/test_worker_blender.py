@@ -1,10 +1,13 @@
 """RSM inside a Blender process: the GL work runs in the worker process, and Blender's own
 `gpu` drawing gives the same pixels before and after it (moderngl in-process breaks it)."""
 
+import dataclasses
 import json
 import subprocess
 import sys
 
+import numpy as np
+import pytest
 from conftest import ROOT
 
 SCRIPT = r"""
@@ -62,3 +65,47 @@ def test_rsm_in_worker_leaves_blender_drawing_intact(tmp_path):
     assert r["identical"]
     assert r["lights"] == 1 and r["vpls"] > 1000 and r["finite"]
     assert r["flux"] > 0
+
+
+
+def test_cell_gaps_survive_the_worker_round_trip():
+    """The live worker's out.npz carries each cascade's cell gaps (geometry_volume.cell_gaps),
+    and live.py reads them back keyed by the very Grid objects of the result: the arrays the
+    engine's occlusion gives for each cascade (recomputed here, numpy only). Without occlusion
+    no cascade has gaps."""
+    pytest.importorskip("bpy")
+    from lpv_addon import live
+    from lpv_core import demo, engine, live_worker
+    from lpv_core.scene import GISettings
+
+    settings = GISettings(grid_resolution=12, cascades=2, cascades_auto=False,
+                          rsm_resolution=32, occlusion=True)
+    scene = demo.cornell_box("SPOT", (16, 16), settings=settings)
+    worker = live.WorkerClient()
+    try:
+        results = []
+        for occlusion in (True, False):
+            scene.settings = settings.updated(occlusion=occlusion)
+            request, reply_path = worker.path("in.npz"), worker.path(f"out_{occlusion}.npz")
+            live_worker.save_scene(request, scene)
+            reply = worker.wait(worker.send("update", scene=request, reply=reply_path), 300.0)
+            assert reply.get("ok"), reply
+            results.append((live._read_reply(reply, scene, "key", [], 0.0, reply_path, 0.0),
+                            set(np.load(reply_path).files)))
+    finally:
+        worker.close()
+    (result, files), (plain, plain_files) = results
+    grids = [result.grid] + [g for g, _, _ in result.fine]
+    assert len(grids) == 2  # both cascades
+    assert len(result.gaps) == len(grids)
+    assert {"gaps", "fine_0_gaps"} <= files
+    for grid in grids:
+        assert any(k is grid for k in result.gaps)  # the result's own Grid objects
+        expect = engine.occlusion(dataclasses.replace(scene, settings=settings), grid)[1]
+        assert expect is not None
+        got = result.gaps[grid]
+        assert got.dtype == np.float32 and got.shape == (6,) + (grid.resolution,) * 3
+        np.testing.assert_array_equal(got, np.asarray(expect, np.float32))
+    assert any(result.gaps[g].max() > 0 for g in grids)  # the walls lie off the face planes
+    assert plain.values is not None and not plain.gaps
+    assert not any(f.endswith("gaps") for f in plain_files)
