@@ -43,6 +43,10 @@ _SHADERS: dict = {}
 _RESOURCES: dict = {}  # key -> GPU objects (textures, batches), freed with free_resources()
 _HANDLES: list = []  # draw handler of SpaceView3D (at most one)
 
+# Fragment shader samplers, by slot (12 per draw of a cascade; OpenGL 4.3 guarantees 16).
+SAMPLERS = ("lpv_r", "lpv_g", "lpv_b", "vis_plus", "vis_minus", "cos_table", "lpv_r2", "lpv_g2",
+            "lpv_b2", "lpv_c8", "gaps_plus", "gaps_minus")
+
 VERTEX_SOURCE = """
 void main() {
     v_pos = pos;
@@ -209,18 +213,8 @@ def _lpv_shader():
         info.push_constant("VEC4", "view_dir")  # view direction; 0 "sh", 1 "m1", 2 9 coeffs
         info.push_constant("FLOAT", "nudge")  # deferred.toward_viewer's distance
         info.push_constant("FLOAT", "use_gaps")  # 1: move sample points (gap_corrected)
-        info.sampler(0, "FLOAT_3D", "lpv_r")
-        info.sampler(1, "FLOAT_3D", "lpv_g")
-        info.sampler(2, "FLOAT_3D", "lpv_b")
-        info.sampler(3, "FLOAT_3D", "vis_plus")
-        info.sampler(4, "FLOAT_3D", "vis_minus")
-        info.sampler(5, "FLOAT_2D", "cos_table")
-        info.sampler(6, "FLOAT_3D", "lpv_r2")
-        info.sampler(7, "FLOAT_3D", "lpv_g2")
-        info.sampler(8, "FLOAT_3D", "lpv_b2")
-        info.sampler(9, "FLOAT_3D", "lpv_c8")
-        info.sampler(10, "FLOAT_3D", "gaps_plus")
-        info.sampler(11, "FLOAT_3D", "gaps_minus")
+        for slot, name in enumerate(SAMPLERS):
+            info.sampler(slot, "FLOAT_2D" if name == "cos_table" else "FLOAT_3D", name)
         info.fragment_out(0, "VEC4", "FragColor")
         info.vertex_source(VERTEX_SOURCE)
         info.fragment_source(FRAGMENT_SOURCE)

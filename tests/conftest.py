@@ -6,6 +6,8 @@ import sys
 import tempfile
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
 _TMP = Path(tempfile.mkdtemp(prefix="lpv_test_"))
 # Must happen before anything imports bpy: keeps tests out of the user's Blender config.
@@ -19,3 +21,16 @@ if str(ROOT) not in sys.path:
 
 # Cycles references and other expensive artefacts are cached here between runs.
 CACHE = Path(os.environ.get("LPV_TEST_CACHE", ROOT / ".cache" / "tests"))
+
+
+@pytest.fixture(scope="module")
+def gl():
+    """lpv_core.gl_backend with a working compute context, or the test is skipped."""
+    try:
+        from lpv_core import gl_backend
+
+        be = gl_backend.backend()
+        be.zeros(2).release()  # compiles and runs a compute shader
+    except Exception as exc:  # noqa: BLE001 - no GL 4.3 context on this machine
+        pytest.skip(f"no OpenGL 4.3 compute context: {exc}")
+    return gl_backend

@@ -9,17 +9,6 @@ FAKE_MS = {"inject": {"numpy": 10.0, "gl": 40.0}, "propagate": {"numpy": 5.0, "g
            "lookup": {"numpy": 20.0, "gl": 30.0}}
 
 
-@pytest.fixture(scope="module")
-def gl():
-    try:
-        from lpv_core import gl_backend
-
-        be = gl_backend.backend()
-        be.zeros(2).release()  # compiles and runs a compute shader
-    except Exception as exc:  # noqa: BLE001 - no GL 4.3 context on this machine
-        pytest.skip(f"no OpenGL 4.3 compute context: {exc}")
-    return gl_backend
-
 
 @pytest.fixture
 def cache(gl, tmp_path, monkeypatch):

@@ -15,17 +15,6 @@ from lpv_core.scene import GISettings
 RTOL = 1e-4
 
 
-@pytest.fixture(scope="module")
-def gl():
-    try:
-        from lpv_core import gl_backend
-
-        be = gl_backend.backend()
-        be.zeros(2).release()  # compiles and runs a compute shader
-    except Exception as exc:  # noqa: BLE001 - no GL 4.3 context on this machine
-        pytest.skip(f"no OpenGL 4.3 compute context: {exc}")
-    return gl_backend
-
 
 def _agree(got, ref, what=""):
     got = np.asarray(got, np.float64)
@@ -63,6 +52,19 @@ def _visibility(r, rng):
     vis[rng.uniform(size=vis.shape) < 0.2] = 0.0
     vis[rng.uniform(size=vis.shape) < 0.3] = 1.0
     return vis
+
+
+def _lookup_case(r, seed, far, coefficients, m):
+    """A random grid (R, R, R, 3, K) with positive band 0, M receivers (some outside the grid)
+    with unit normals, and a random visibility."""
+    g = _grid(r, seed=seed, far=far)
+    rng = np.random.default_rng(seed)
+    values = rng.normal(size=(r, r, r, 3, coefficients)).astype(np.float32)
+    values[..., 0] = np.abs(values[..., 0]) * 3.0
+    pos = g.origin_array + rng.uniform(-1.0, r + 1.0, (m, 3)) * g.cell_size
+    nrm = rng.normal(size=(m, 3))
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    return g, values, pos, nrm, _visibility(r, rng)
 
 
 @pytest.mark.parametrize("occluded", [False, True])
@@ -203,15 +205,7 @@ def test_propagation_stays_on_the_gpu_between_stages(gl):
 
 @pytest.mark.parametrize("r", [6, 16, 19])
 def test_lookup_agrees(gl, r):
-    g = _grid(r, seed=r, far=(r == 19))
-    rng = np.random.default_rng(r)
-    values = rng.normal(size=(r, r, r, 3, 4)).astype(np.float32)
-    values[..., 0] = np.abs(values[..., 0]) * 3.0
-    m = 5000
-    pos = g.origin_array + rng.uniform(-1.0, r + 1.0, (m, 3)) * g.cell_size  # some outside
-    nrm = rng.normal(size=(m, 3))
-    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
-    vis = _visibility(r, rng)
+    g, values, pos, nrm, vis = _lookup_case(r, r, r == 19, 4, 5000)
     _agree(gl.sample(g, values, pos), lookup.sample(g, values, pos), f"sample {r}^3")
     _agree(gl.sample(g, values, pos, vis), lookup.sample(g, values, pos, vis),
            f"sample {r}^3 occluded")
@@ -390,15 +384,8 @@ def test_lookup_of_bands_0_to_2_agrees(gl, r):
     """A 9-coefficient grid is read with sh.irradiance_weights whatever the angular model, on
     the GPU as in lookup.irradiance; sample returns (M, 3, 9)."""
     be = gl.backend()
-    g = _grid(r, seed=40 + r, far=(r == 13))
-    rng = np.random.default_rng(40 + r)
-    values = rng.normal(size=(r, r, r, 3, 9)).astype(np.float32)
-    values[..., 0] = np.abs(values[..., 0]) * 3.0
     m = 4000
-    pos = g.origin_array + rng.uniform(-1.0, r + 1.0, (m, 3)) * g.cell_size  # some outside
-    nrm = rng.normal(size=(m, 3))
-    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
-    vis = _visibility(r, rng)
+    g, values, pos, nrm, vis = _lookup_case(r, 40 + r, r == 13, 9, m)
     before = be.fallbacks
     on_gpu = be.upload(values)
     assert on_gpu.coefficients == 9 and on_gpu.shape == values.shape
