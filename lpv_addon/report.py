@@ -1529,14 +1529,21 @@ def main(argv: list[str] | None = None) -> int:
         _log(f"scene {name}: {time.perf_counter() - t0:.0f} s")
         (out / "results.partial.json").write_text(
             json.dumps(data, indent=1, default=_json_default))
-    (out / "results.partial.json").unlink(missing_ok=True)
     stab_figs: list[str] = []
     if not args.no_stability:
         _log(f"stability suite ({prof['stability']})")
-        data["stability"] = stability.run_suite(
-            prof["stability"], progress=lambda n, s: _log(f"  stability {n}: {s:.1f} s"))
-        stab_figs = plot_stability(data["stability"], out)
-        data["stability_figures"] = stab_figs
+        try:
+            data["stability"] = stability.run_suite(
+                prof["stability"], progress=lambda n, s: _log(f"  stability {n}: {s:.1f} s"))
+            stab_figs = plot_stability(data["stability"], out)
+            data["stability_figures"] = stab_figs
+        except Exception as exc:  # noqa: BLE001 - the scenes' figures must not be lost
+            import traceback
+
+            traceback.print_exc()
+            data["failed"].append({"scene": "stability suite",
+                                   "error": f"{type(exc).__name__}: {exc}"})
+    (out / "results.partial.json").unlink(missing_ok=True)
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     data["meta"] = {
         "command": "python -m lpv_addon.report" + ("" if mode == "full" else
