@@ -64,6 +64,8 @@ def tables(q: int | None = None):
                 pairs.append((OFFSETS.index(off), off,
                               w.astype(np.float32)[:, None, None, None, None]))
             groups.append((slice(int(idx[0]), int(idx[-1]) + 1), pairs))
+        # loop_step writes each octant's slice only: together they must hold every direction
+        assert sum(sl.stop - sl.start for sl, _ in groups) == q
         _TABLES[q] = (dirs.astype(np.float32), sh.evaluate_basis(dirs).astype(np.float32),
                       groups)
     return _TABLES[q]
