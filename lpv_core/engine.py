@@ -462,7 +462,7 @@ class Engine:
         self._cache_base = self._cache_chain = None
 
     def _visibility(self, scene: Scene, grid: Grid, stats: Stats | None):
-        """propagation_visibility, cached with the per-light grids (same scene key)."""
+        """occlusion()'s visibility, cached with the per-light grids (same scene key)."""
         key = ("visibility", grid.origin, grid.cell_size)
         if key not in self._cache:
             self._cache[key] = occlusion(scene, grid, stats)
@@ -713,18 +713,12 @@ def combine(grid: Grid, per_light: dict, lights, intensity: float) -> np.ndarray
     return combined
 
 
-def propagation_visibility(scene: Scene, grid: Grid, stats: Stats | None = None):
-    """(6, R, R, R) factors for what each cell sends towards propagation.AXES[i], or None.
+def occlusion(scene: Scene, grid: Grid, stats: Stats | None = None):
+    """(visibility, gaps): the (6, R, R, R) factors for what each cell sends towards
+    propagation.AXES[i] (or None), and the occluders' geometry_volume.cell_gaps (or None).
 
     The one place where every propagation visibility term is combined (multiplied): clip
-    areas (areas.clip_visibility); occlusion terms multiply in here too.
-    """
-    return occlusion(scene, grid, stats)[0]
-
-
-def occlusion(scene: Scene, grid: Grid, stats: Stats | None = None):
-    """(propagation_visibility, the occluders' geometry_volume.cell_gaps or None): what
-    propagation and lookups need to know about the grid's occluders."""
+    areas (areas.clip_visibility) and the geometry volume of the occluders."""
     visibility = gaps = None
     if areas.has_clip(scene.areas):
         visibility = areas.clip_visibility(grid, scene.areas)
