@@ -54,6 +54,15 @@ def _visibility(r, rng):
     return vis
 
 
+def _injected_case(r, seed, n):
+    """An R^3 grid, its random generator (for what the caller draws next), N VPLs and their
+    injected grid."""
+    g = _grid(r, seed=seed)
+    rng = np.random.default_rng(seed)
+    pos, nrm, flux = _vpls(g, n, rng, spread=0.0)
+    return g, rng, pos, nrm, flux, injection.inject(g, pos, nrm, flux)
+
+
 def _lookup_case(r, seed, far, coefficients, m):
     """A random grid (R, R, R, 3, K) with positive band 0, M receivers (some outside the grid)
     with unit normals, and a random visibility."""
@@ -304,10 +313,7 @@ def test_dom_runs_on_the_gpu(gl):
     the shaders, not the numpy code; a single step on moments is refused as numpy does."""
     be = gl.backend()
     r = 9
-    g = _grid(r, seed=21)
-    rng = np.random.default_rng(21)
-    pos, nrm, flux = _vpls(g, 800, rng, spread=0.0)
-    injected = injection.inject(g, pos, nrm, flux)
+    g, rng, pos, nrm, flux, injected = _injected_case(r, 21, 800)
     vis = _visibility(r, rng)
     before = be.fallbacks
     for kw in ({}, {"visibility": vis}, {"visibility": vis, "occlude_first_step": True}):
@@ -343,10 +349,7 @@ def test_dom_values_hold_bands_0_to_2(gl, occluded):
     Each band is compared on its own scale (band 2 is smaller than band 0)."""
     be = gl.backend()
     r = 11
-    g = _grid(r, seed=31)
-    rng = np.random.default_rng(31)
-    pos, nrm, flux = _vpls(g, 1500, rng, spread=0.0)
-    injected = injection.inject(g, pos, nrm, flux)
+    g, rng, pos, nrm, flux, injected = _injected_case(r, 31, 1500)
     vis = _visibility(r, rng) if occluded else None
     before = be.fallbacks
     for kw in ({"iterations": 7}, {"iterations": 0}, {"iterations": 5, "capture_outflow": True},
