@@ -13,7 +13,17 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import areas, cascades, geometry_volume, injection, lookup, ordinates, planner, propagation
+from . import (
+    areas,
+    cascades,
+    geometry_volume,
+    injection,
+    lookup,
+    ordinates,
+    planner,
+    propagation,
+    sweep,
+)
 from .grid import Grid
 from .scene import Scene
 
@@ -211,7 +221,8 @@ class Engine:
             geo = geometry_key(scene)
         lo, hi, chain = self._chain(scene, stats, geo)
         if settings.angular == "dom":  # a clear error before the RSMs, not a MemoryError
-            ordinates.check_memory(settings.grid_resolution, len(chain) > 1)
+            check = sweep.check_memory if settings.iterations == 0 else ordinates.check_memory
+            check(settings.grid_resolution, len(chain) > 1)
         grid = chain[-1]
         active = _active_lights(scene, stats)
         with Timer(stats, "change_tracking"):
@@ -533,7 +544,10 @@ class _ChainRun:
         self.chain, self.visibilities = chain, visibilities
         self.iterations_cap, self.settings = iterations, settings
         self.backend, self.stats = backend, stats
-        self.iterations: list = []  # steps run per propagation
+        self.iterations: list = []  # steps run per propagation ("sweep": solved exactly)
+        # Automatic iterations with discrete ordinates: the transport sweep (sweep.py) gives
+        # the limit of infinitely many steps, for the work of about three.
+        self.sweep = settings.angular == "dom" and settings.iterations == 0
 
     def propagate(self, positions, normals, flux, reach: list | None = None) -> list:
         """Propagated grids (one per cascade) of the VPLs (N, 3) x3; ``reach[c]`` False: the
@@ -559,14 +573,16 @@ class _ChainRun:
                             be.discard(gpu)
                         cascades.hand_on(chain[c - 1], carry, g, injected)
                 with Timer(stats, "propagation"):
+                    kw = {"sweep": True} if self.sweep else {}
                     prop = be.propagate(injected, self.iterations_cap,
                                         reprojection=settings.reprojection,
                                         angular=settings.angular,
                                         visibility=self.visibilities[c],
                                         occlude_first_step=True,
-                                        capture_outflow=c < last)
+                                        capture_outflow=c < last, **kw)
                     be.discard(injected)
-                self.iterations.append(prop.iterations)
+                self.iterations.append("sweep" if getattr(prop, "swept", False)
+                                       else prop.iterations)
                 with Timer(stats, "combine"):
                     totals[c] += prop.values
                 carry = prop.outflow

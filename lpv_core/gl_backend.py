@@ -1239,6 +1239,10 @@ class GLBackend:
         (counted in ``fallbacks``), so that the engine keeps working while the numpy
         reference moves ahead.
         """
+        # ``sweep`` (dom's exact solve, sweep.py) is sequential over the grid's hyperplanes:
+        # here the dom steps run up to ``iterations`` with the early stop instead, which
+        # converges to the same limit.
+        extra.pop("sweep", None)
         if angular == "dom" and not extra:
             res = self._propagate_dom(injected, iterations, min_fraction, visibility,
                                       occlude_first_step, capture_outflow, readback, keep_gpu)
@@ -1677,8 +1681,8 @@ def choose(ms: dict) -> dict:
 
 CACHE_FILE = "auto_backend.json"
 # The modules whose code measure() times (a change to any of them measures again).
-_TIMED_MODULES = ("gl_backend", "propagation", "ordinates", "injection", "lookup", "closure",
-                  "sh", "grid")
+_TIMED_MODULES = ("gl_backend", "propagation", "ordinates", "sweep", "injection", "lookup",
+                  "closure", "sh", "grid")
 _FINGERPRINT: str | None = None
 
 

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import closure, ordinates, sh
+from . import sweep as transport_sweep
 
 FRONT_SOLID_ANGLE = 4.0 * np.arctan(np.sqrt(11.0) / 33.0)  # 0.4006696846
 SIDE_SOLID_ANGLE = 2.0 * np.arctan(3.0 * np.sqrt(11.0) / 11.0) - np.pi / 3.0  # 0.4234313544
@@ -290,6 +291,7 @@ class PropagationResult:
     # With capture_outflow: (R+2)^3 grid whose one-cell shell holds what left the volume
     # (summed over steps), to be handed on to the next coarser cascade.
     outflow: np.ndarray | None = None
+    swept: bool = False  # solved by a transport sweep (the limit of infinitely many steps)
 
 
 def coefficients(angular: str) -> int:
@@ -307,14 +309,20 @@ def propagate(
     angular: str = "sh",
     occlude_first_step: bool = False,
     capture_outflow: bool = False,
+    sweep: bool = False,
 ) -> PropagationResult:
     """Accumulate ``iterations`` propagation steps, stopping once a step carries less than
     ``min_fraction`` of the injected flux (light moves one cell per step).
 
     The first step ignores ``visibility`` unless ``occlude_first_step`` (KD10: injected light
     sits next to the surface it left, which must not block it). ``capture_outflow`` keeps what
-    leaves the volume instead of dropping it (light passing on to an outer cascade)."""
+    leaves the volume instead of dropping it (light passing on to an outer cascade).
+    ``sweep`` (angular="dom" only; ignored by the others): solve for the limit of infinitely
+    many steps in one transport sweep (sweep.py); ``iterations`` and ``min_fraction`` are
+    then unused and the result's ``iterations`` is 0 with ``swept`` set."""
     if angular == "dom":
+        if sweep:
+            return _sweep_ordinates(injected, visibility, occlude_first_step, capture_outflow)
         return _propagate_ordinates(injected, iterations, min_fraction, visibility,
                                     occlude_first_step, capture_outflow)
     if capture_outflow:
@@ -402,3 +410,29 @@ def _propagate_ordinates(injected, iterations, min_fraction, visibility, occlude
         q = outflow.shape[0]
         outflow = ordinates.fold(outflow.reshape(q, 3, r + 2, r + 2, r + 2))
     return PropagationResult(values, done, flux(injected), fraction, early, outflow)
+
+
+def _sweep_ordinates(injected, visibility, occlude_first_step, capture_outflow
+                     ) -> PropagationResult:
+    """propagate(angular="dom", sweep=True): the injected lobes unfolded as in
+    _propagate_ordinates, then A = y + T A solved by sweep.solve, where y is the first step's
+    arrivals (the injected light itself when ``occlude_first_step``, A then less it)."""
+    r = injected.shape[0]
+    transport_sweep.check_memory(r, capture_outflow)
+    flux_dirs = ordinates.unfold(injected)
+    shell = capture_outflow
+    offvis = _offset_visibilities(visibility)
+    if occlude_first_step:
+        source = transport_sweep.cell_major(flux_dirs, shell)
+        acc = transport_sweep.solve(source, r, offvis, shell)
+        acc -= source
+    else:  # the first step is unoccluded: take it as a step, sweep its arrivals
+        first = ordinates.advance(ordinates.pad(flux_dirs), ordinates.factors(r))
+        first = first.reshape(*first.shape[:2], r + 2, r + 2, r + 2)
+        source = transport_sweep.cell_major(first if shell else first[..., 1:-1, 1:-1, 1:-1],
+                                            shell=False)
+        acc = transport_sweep.solve(source, r, offvis, shell)
+    values = transport_sweep.fold(acc, r, sh.BANDS2, "interior" if shell else "grid")
+    values += ordinates.emission_band2(injected)
+    outflow = transport_sweep.fold(acc, r, 4, "shell") if shell else None
+    return PropagationResult(values, 0, flux(injected), 0.0, False, outflow, swept=True)

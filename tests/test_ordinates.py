@@ -142,15 +142,19 @@ def test_large_grids_keep_weights_and_transmittances_apart_with_the_same_result(
                                atol=1e-6 * np.abs(fused.values).max())
 
 
-def test_a_grid_too_large_for_memory_is_refused_before_any_work():
-    """grid_resolution 128 would need ~6.7 GB of working arrays: a clear error naming the
-    setting, raised by the engine before the RSM is rendered (not a MemoryError later)."""
-    from lpv_core import demo, engine
+@pytest.mark.parametrize("iterations, figure", [(0, "12.7"), (40, "6.7")])
+def test_a_grid_too_large_for_memory_is_refused_before_any_work(iterations, figure):
+    """grid_resolution 128 would need ~12.7 GB for the sweep (automatic iterations) or
+    ~6.7 GB for the steps: a clear error naming the setting, raised by the engine before the
+    RSM is rendered (not a MemoryError later)."""
+    from lpv_core import demo, engine, sweep
     from lpv_core.scene import GISettings
 
     ordinates.check_memory(64)  # ~0.9 GB: fine
-    sc = demo.cornell_box("SPOT", (8, 8), GISettings(grid_resolution=128, backend="numpy"))
+    sweep.check_memory(64)  # ~2.4 GB: fine
+    sc = demo.cornell_box("SPOT", (8, 8), GISettings(grid_resolution=128, backend="numpy",
+                                                     iterations=iterations))
     stats = engine.Stats()
-    with pytest.raises(ValueError, match="grid_resolution 128 needs about 6.7 GB"):
+    with pytest.raises(ValueError, match=f"grid_resolution 128 needs about {figure} GB"):
         engine.Engine().update(sc, stats)
     assert "rsm" not in stats.ms
