@@ -567,13 +567,16 @@ class _ChainRun:
                 with Timer(stats, "injection"):
                     injected = _inject(be, g, positions[sel], normals[sel], flux[sel],
                                        self.visibilities[c])
-                    if carry is not None:
-                        if hasattr(injected, "read"):  # a GPU grid: hand on in numpy
-                            gpu, injected = injected, injected.read()
-                            be.discard(gpu)
-                        cascades.hand_on(chain[c - 1], carry, g, injected)
+                    passing = None
+                    if carry is not None:  # light leaving the finer cascade: no surface's
+                        passing = g.zeros()
+                        cascades.hand_on(chain[c - 1], carry, g, passing)
                 with Timer(stats, "propagation"):
                     kw = {"sweep": True} if self.sweep else {}
+                    if settings.angular == "dom":
+                        kw["launch"] = True  # VPLs start from their surfaces (ordinates.launch)
+                    if passing is not None:
+                        kw["passing"] = passing
                     prop = be.propagate(injected, self.iterations_cap,
                                         reprojection=settings.reprojection,
                                         angular=settings.angular,

@@ -1242,7 +1242,13 @@ class GLBackend:
         # ``sweep`` (dom's exact solve, sweep.py) is sequential over the grid's hyperplanes:
         # here the dom steps run up to ``iterations`` with the early stop instead, which
         # converges to the same limit.
-        extra.pop("sweep", None)
+        sweep = extra.pop("sweep", False)
+        passing = extra.pop("passing", None)
+        launch = extra.pop("launch", False) and angular == "dom"
+        if launch:  # ordinates.launch's first step is numpy's: all of it runs there (counted)
+            extra.update({"launch": True, "sweep": sweep, "passing": passing})
+        elif passing is not None:  # without a launch, handed-on light is injected light
+            injected = (injected.read() if isinstance(injected, GLGrid) else injected) + passing
         if angular == "dom" and not extra:
             res = self._propagate_dom(injected, iterations, min_fraction, visibility,
                                       occlude_first_step, capture_outflow, readback, keep_gpu)
@@ -1644,11 +1650,14 @@ def measure(resolution: int = 16, vpls: int = 16384, receivers: int = 65536,
     injected = injection.inject(g, pos, nrm, flux)
     kw = {"angular": angular}
     values = propagation.propagate(injected, iterations, **kw).values
+    # what the engine asks for: dom light launched from its surfaces, swept to convergence
+    engine_kw = dict(kw, launch=True, sweep=True) if angular == "dom" else kw
     runs = {
         ("inject", "numpy"): lambda: injection.inject(g, pos, nrm, flux),
         ("inject", "gl"): lambda: gl.inject(g, pos, nrm, flux).release(),
-        ("propagate", "numpy"): lambda: propagation.propagate(injected, iterations, 0.0, **kw),
-        ("propagate", "gl"): lambda: gl.propagate(injected, iterations, 0.0, **kw),
+        ("propagate", "numpy"): lambda: propagation.propagate(injected, iterations, 0.0,
+                                                             **engine_kw),
+        ("propagate", "gl"): lambda: gl.propagate(injected, iterations, 0.0, **engine_kw),
         ("lookup", "numpy"): lambda: lookup.irradiance(g, values, rpos, rnrm, **kw),
         ("lookup", "gl"): lambda: gl.irradiance(g, values, rpos, rnrm, **kw),
     }

@@ -310,6 +310,8 @@ def propagate(
     occlude_first_step: bool = False,
     capture_outflow: bool = False,
     sweep: bool = False,
+    launch: bool = False,
+    passing: np.ndarray | None = None,
 ) -> PropagationResult:
     """Accumulate ``iterations`` propagation steps, stopping once a step carries less than
     ``min_fraction`` of the injected flux (light moves one cell per step).
@@ -319,12 +321,19 @@ def propagate(
     leaves the volume instead of dropping it (light passing on to an outer cascade).
     ``sweep`` (angular="dom" only; ignored by the others): solve for the limit of infinitely
     many steps in one transport sweep (sweep.py); ``iterations`` and ``min_fraction`` are
-    then unused and the result's ``iterations`` is 0 with ``swept`` set."""
+    then unused and the result's ``iterations`` is 0 with ``swept`` set.
+    ``launch`` (angular="dom" only): ``injected`` is light just emitted by surfaces (VPLs
+    injected half a cell off them); its first step starts from the surface (ordinates.launch).
+    ``passing``: light handed on from an inner cascade (cascades.hand_on), which left no
+    surface: it takes plain steps (the other models add it to ``injected``)."""
     if angular == "dom":
         if sweep:
-            return _sweep_ordinates(injected, visibility, occlude_first_step, capture_outflow)
+            return _sweep_ordinates(injected, visibility, occlude_first_step, capture_outflow,
+                                    launch, passing)
         return _propagate_ordinates(injected, iterations, min_fraction, visibility,
-                                    occlude_first_step, capture_outflow)
+                                    occlude_first_step, capture_outflow, launch, passing)
+    if passing is not None:
+        injected = injected + passing
     if capture_outflow:
         return _propagate_capturing(injected, iterations, min_fraction, visibility,
                                     reprojection, angular, occlude_first_step)
@@ -380,23 +389,42 @@ def _propagate_capturing(injected, iterations, min_fraction, visibility, reproje
 
 
 def _propagate_ordinates(injected, iterations, min_fraction, visibility, occlude_first_step,
-                         capture_outflow) -> PropagationResult:
+                         capture_outflow, launch=False, passing=None) -> PropagationResult:
     """propagate() with angular="dom" (ordinates.py): the injected lobes are unfolded once into
     flux per direction, advected step by step in the padded flat layout (ordinates.advance),
     and folded back into moments once at the end. What lands in the layout's one-cell shell
-    left the grid: with ``capture_outflow`` it is kept as ``outflow`` ((R+2)^3 grid)."""
+    left the grid: with ``capture_outflow`` it is kept as ``outflow`` ((R+2)^3 grid).
+    With ``launch`` the first step of ``injected`` is ordinates.launch (``passing`` steps
+    plainly); otherwise the two are one grid."""
     r = injected.shape[0]
     ordinates.check_memory(r, capture_outflow)
-    cur = ordinates.pad(ordinates.unfold(injected))
-    total0 = float(cur.sum(dtype=np.float64))
-    acc = np.zeros_like(cur)
-    outflow = np.zeros_like(cur) if capture_outflow else None
+    total = injected if passing is None else injected + passing
+    offvis = _offset_visibilities(visibility)
     free = ordinates.factors(r)
-    occluded = free if visibility is None else ordinates.factors(
-        r, _offset_visibilities(visibility))
+    occluded = free if visibility is None else ordinates.factors(r, offvis)
+    acc = np.zeros((ordinates.DIRECTIONS, 3, (r + 2) ** 3), np.float32)
+    outflow = np.zeros_like(acc) if capture_outflow else None
+    done = 0
+    if launch:
+        cur = ordinates.launch(injected, offvis if occlude_first_step else None)
+        if passing is not None:
+            cur += ordinates.advance(ordinates.pad(ordinates.unfold(passing)),
+                                     occluded if occlude_first_step else free)
+        total0 = float(ordinates.unfold(total).sum(dtype=np.float64))
+        if total0 > 0 and iterations > 0:
+            ordinates.take_shell(cur, r, outflow)
+            acc += cur
+            done = 1
+            moved = float(cur.sum(dtype=np.float64))
+    else:
+        cur = ordinates.pad(ordinates.unfold(total))
+        total0 = float(cur.sum(dtype=np.float64))
     fraction = 1.0 if total0 > 0 else 0.0
-    done, early = 0, total0 <= 0
-    for _ in range(0 if early else max(int(iterations), 0)):
+    early = total0 <= 0
+    if done:
+        fraction = moved / total0
+        early = fraction < min_fraction
+    for _ in range(0 if early else max(int(iterations) - done, 0)):
         table = occluded if (done > 0 or occlude_first_step) else free
         cur, moved = ordinates.loop_step(cur, table, r, acc, outflow)
         done += 1
@@ -405,34 +433,44 @@ def _propagate_ordinates(injected, iterations, min_fraction, visibility, occlude
             early = True
             break
     values = ordinates.fold(np.ascontiguousarray(ordinates.interior(acc, r)), sh.BANDS2)
-    values += ordinates.emission_band2(injected)
+    values += ordinates.emission_band2(total)
     if outflow is not None:
         q = outflow.shape[0]
         outflow = ordinates.fold(outflow.reshape(q, 3, r + 2, r + 2, r + 2))
-    return PropagationResult(values, done, flux(injected), fraction, early, outflow)
+    return PropagationResult(values, done, flux(total), fraction, early, outflow)
 
 
-def _sweep_ordinates(injected, visibility, occlude_first_step, capture_outflow
-                     ) -> PropagationResult:
-    """propagate(angular="dom", sweep=True): the injected lobes unfolded as in
-    _propagate_ordinates, then A = y + T A solved by sweep.solve, where y is the first step's
-    arrivals (the injected light itself when ``occlude_first_step``, A then less it)."""
+def _sweep_ordinates(injected, visibility, occlude_first_step, capture_outflow, launch=False,
+                     passing=None) -> PropagationResult:
+    """propagate(angular="dom", sweep=True): A = y + T A solved by sweep.solve, y the first
+    step's arrivals (ordinates.launch of ``injected`` with ``launch``), or the unfolded light
+    itself when ``occlude_first_step`` (A then less it); ``passing`` is always the latter."""
     r = injected.shape[0]
     transport_sweep.check_memory(r, capture_outflow)
-    flux_dirs = ordinates.unfold(injected)
     shell = capture_outflow
     offvis = _offset_visibilities(visibility)
-    if occlude_first_step:
-        source = transport_sweep.cell_major(flux_dirs, shell)
-        acc = transport_sweep.solve(source, r, offvis, shell)
-        acc -= source
+    total = injected if passing is None else injected + passing
+    in_place = None  # the part of the source that is not an arrival (taken off A)
+    if launch:
+        source = ordinates.launch(injected, offvis if occlude_first_step else None, "cells")
+        if not shell:
+            p = r + 2
+            source = np.ascontiguousarray(
+                source.reshape(p, p, p, 3, -1)[1:-1, 1:-1, 1:-1]).reshape(r**3, 3, -1)
+        if passing is not None:
+            in_place = transport_sweep.cell_major(ordinates.unfold(passing), shell)
+            source += in_place
+    elif occlude_first_step:
+        source = in_place = transport_sweep.cell_major(ordinates.unfold(total), shell)
     else:  # the first step is unoccluded: take it as a step, sweep its arrivals
-        first = ordinates.advance(ordinates.pad(flux_dirs), ordinates.factors(r))
+        first = ordinates.advance(ordinates.pad(ordinates.unfold(total)), ordinates.factors(r))
         first = first.reshape(*first.shape[:2], r + 2, r + 2, r + 2)
         source = transport_sweep.cell_major(first if shell else first[..., 1:-1, 1:-1, 1:-1],
                                             shell=False)
-        acc = transport_sweep.solve(source, r, offvis, shell)
+    acc = transport_sweep.solve(source, r, offvis, shell)
+    if in_place is not None:
+        acc -= in_place
     values = transport_sweep.fold(acc, r, sh.BANDS2, "interior" if shell else "grid")
-    values += ordinates.emission_band2(injected)
+    values += ordinates.emission_band2(total)
     outflow = transport_sweep.fold(acc, r, 4, "shell") if shell else None
-    return PropagationResult(values, 0, flux(injected), 0.0, False, outflow, swept=True)
+    return PropagationResult(values, 0, flux(total), 0.0, False, outflow, swept=True)
