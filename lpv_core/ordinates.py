@@ -92,8 +92,7 @@ def unfold(values: np.ndarray) -> np.ndarray:
 LAUNCH_CELLS = 0.5  # injection.inject moves a VPL this far off its surface [KD10 sec. 4.2]
 
 
-def launch(injected: np.ndarray, offset_visibility: list | None = None,
-           layout: str = "directions") -> np.ndarray:
+def launch(injected: np.ndarray, offset_visibility: list | None = None) -> np.ndarray:
     """The first step of light emitted by surfaces: the arrivals (padded, shell = what left).
 
     injection.inject puts a VPL half a cell off its surface (LAUNCH_CELLS, against
@@ -113,61 +112,74 @@ def launch(injected: np.ndarray, offset_visibility: list | None = None,
     0.884 -> 0.932; capped: 0.150, 0.887; the sunlit room 0.517 -> 0.416 / 0.422).
     Directions behind m take a plain step.
 
-    ``injected`` (R, R, R, 3, 4). Returns (q, 3, (R+2)^3) direction-major
-    (``layout="directions"``, the layout ``advance`` steps) or ((R+2)^3, 3, q) cell-major
-    (``layout="cells"``, sweep.solve's)."""
+    ``injected`` (R, R, R, 3, 4). Returns the padded flat layout (q, 3, (R+2)^3) that
+    ``advance`` steps and sweep.solve takes."""
     dirs, _, _ = tables()
     q = len(dirs)
     r = injected.shape[0]
     p = r + 2
-    cells = np.ascontiguousarray(injected.transpose(3, 0, 1, 2, 4), np.float32).reshape(-1, 4)
-    lit = np.flatnonzero(cells[:, 0] > 0)  # (colour, cell) pairs holding light
-    size = q * 3 * p**3
-    if lit.size == 0:
-        out = np.zeros(size, np.float32)
-    else:
-        flux = unfold(injected).reshape(q, -1)[:, lit]  # (q, n)
-        _, _, m = closure.moments(cells[lit])  # (n, 3)
-        colour, cell = np.divmod(lit, r**3)
-        ijk = np.stack(np.unravel_index(cell, (r, r, r)), axis=1)  # (n, 3)
+    geometry = np.asarray(injected, np.float32).sum(axis=3).reshape(-1, 4)  # colours summed
+    lit = np.flatnonzero(geometry[:, 0] > 0)
+    if lit.size:
+        flux = unfold(injected).reshape(q, 3, -1)[:, :, lit]  # (q, 3, n)
+        _, _, m = closure.moments(geometry[lit])  # (n, 3): the cell's emission direction
         cos = dirs @ m.T  # (q, n)
         side = dirs[:, None, :] - cos[..., None] * m[None]  # (q, n, 3)
         sin = np.sqrt(np.sum(side * side, axis=-1))
         # tan clipped at 1: the sideways shift is at most LAUNCH_CELLS (see the docstring)
-        move = dirs[:, None, :] + (LAUNCH_CELLS / np.maximum(np.maximum(cos, sin), 1e-6))[
-            ..., None] * side
-        move = np.where((cos > 0)[..., None], move, dirs[:, None, :])
-        move = np.clip(move, -1.0, 1.0)
+        scale = np.where(cos > 0, LAUNCH_CELLS / np.maximum(np.maximum(cos, sin), 1e-6),
+                         np.float32(0.0)).astype(np.float32)
+        move = np.clip(dirs[:, None, :] + scale[..., None] * side, -1.0, 1.0)
         base = np.minimum(np.floor(move), 0.0)  # -1 or 0: the corners are base + {0, 1}
-        frac = (move - base).astype(np.float32)
+        frac = np.ascontiguousarray((move - base).transpose(2, 0, 1), np.float32)  # (3, q, n)
         base = base.astype(np.int64)
+        ijk = np.stack(np.unravel_index(lit, (r, r, r)), axis=1) + 1  # (n, 3) padded cells
+        start = (ijk[:, 0] * p + ijk[:, 1]) * p + ijk[:, 2]
         vis = None
         if offset_visibility is not None:
-            vis = np.stack([v.reshape(-1) for v in offset_visibility])  # (27, R^3)
-        j = np.arange(q)[:, None]
-        idx, wts = [], []
-        for corner in np.ndindex(2, 2, 2):
-            c = np.array(corner)
-            off = base + c  # (q, n, 3) in {-1, 0, 1}
-            w = np.prod(np.where(c == 1, frac, 1.0 - frac), axis=-1) * flux
-            if vis is not None:
-                k_off = ((off[..., 0] + 1) * 3 + off[..., 1] + 1) * 3 + off[..., 2] + 1
-                w = w * vis[k_off, cell[None, :]]
-            t = ijk[None] + 1 + off
-            flat = (t[..., 0] * p + t[..., 1]) * p + t[..., 2]
-            if layout == "cells":
-                idx.append((flat * 3 + colour[None, :]) * q + j)
-            else:
-                idx.append((j * 3 + colour[None, :]) * p**3 + flat)
-            wts.append(w)
-        out = np.bincount(np.concatenate([i.ravel() for i in idx]),
-                          weights=np.concatenate([w.ravel() for w in wts]),
-                          minlength=size).astype(np.float32)
-    if layout == "cells":
-        return out.reshape(p**3, 3, q)
-    if layout != "directions":
-        raise ValueError(f"layout must be 'directions' or 'cells', not {layout!r}")
-    return out.reshape(q, 3, p**3)
+            vis = np.stack([v.reshape(-1)[lit] for v in offset_visibility])  # (27, n)
+        # Where a direction moves towards its own octant (every cell of an axis-aligned
+        # surface), its corners are the octant's 8 step offsets: one ``advance`` with
+        # per-cell weights (dense over the padded grid, zero off the lit cells). Other
+        # (direction, cell) pairs (a tilted surface turning a direction's sideways shift
+        # against it) go by bincount.
+        octant_base = np.minimum(np.sign(dirs), 0).astype(np.int64)  # (q, 3)
+        own = np.all(base == octant_base[:, None, :], axis=-1)  # (q, n)
+        per_axis = np.stack([1.0 - frac, frac])  # (2, 3, q, n): corner 0 / 1 per axis
+        w = (per_axis[:, None, None, 0] * per_axis[None, :, None, 1]
+             * per_axis[None, None, :, 2]).reshape(8, q, -1) * own  # (8 corners, q, n)
+        corners = np.array(list(np.ndindex(2, 2, 2)))  # (8, 3)
+        offs = octant_base[None] + corners[:, None]  # (8, q, 3): each direction's offsets
+        k_off = ((offs[..., 0] + 1) * 3 + offs[..., 1] + 1) * 3 + offs[..., 2] + 1  # (8, q)
+        if vis is not None:
+            w *= vis[k_off]  # (8, q, n)
+        dense = np.zeros((8, q, 1, p**3), np.float32)
+        dense[:, :, 0, start] = w
+        shifts = (offs[..., 0] * p + offs[..., 1]) * p + offs[..., 2]  # (8, q)
+        table = [(sl, [(int(shifts[k, sl.start]), dense[k, sl], None) for k in range(8)])
+                 for sl, _ in tables()[2]]
+        source = np.zeros((q, 3, p**3), np.float32)
+        source[:, :, start] = flux
+        out = advance(source, table)
+        frac = frac.transpose(1, 2, 0)  # (q, n, 3) for the pairs below
+        other = np.nonzero(~own)
+        if other[0].size:
+            jj, nn = other
+            fr, bs = frac[jj, nn], base[jj, nn]  # (k, 3)
+            flat_out = out.reshape(-1)
+            for corner in np.ndindex(2, 2, 2):
+                c = np.array(corner)
+                off = bs + c
+                w = np.prod(np.where(c == 1, fr, 1.0 - fr), axis=-1)
+                if vis is not None:
+                    w = w * vis[((off[:, 0] + 1) * 3 + off[:, 1] + 1) * 3 + off[:, 2] + 1, nn]
+                flat = start[nn] + (off[:, 0] * p + off[:, 1]) * p + off[:, 2]
+                for colour in range(3):
+                    np.add.at(flat_out, (jj * 3 + colour) * p**3 + flat,
+                              w * flux[jj, colour, nn])
+    else:
+        out = np.zeros((q, 3, p**3), np.float32)
+    return out
 
 
 def fold(flux: np.ndarray, coefficients: int = 4) -> np.ndarray:

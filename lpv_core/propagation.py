@@ -452,25 +452,18 @@ def _sweep_ordinates(injected, visibility, occlude_first_step, capture_outflow, 
     total = injected if passing is None else injected + passing
     in_place = None  # the part of the source that is not an arrival (taken off A)
     if launch:
-        source = ordinates.launch(injected, offvis if occlude_first_step else None, "cells")
-        if not shell:
-            p = r + 2
-            source = np.ascontiguousarray(
-                source.reshape(p, p, p, 3, -1)[1:-1, 1:-1, 1:-1]).reshape(r**3, 3, -1)
+        source = ordinates.launch(injected, offvis if occlude_first_step else None)
         if passing is not None:
-            in_place = transport_sweep.cell_major(ordinates.unfold(passing), shell)
+            in_place = ordinates.pad(ordinates.unfold(passing))
             source += in_place
     elif occlude_first_step:
-        source = in_place = transport_sweep.cell_major(ordinates.unfold(total), shell)
+        source = in_place = ordinates.pad(ordinates.unfold(total))
     else:  # the first step is unoccluded: take it as a step, sweep its arrivals
-        first = ordinates.advance(ordinates.pad(ordinates.unfold(total)), ordinates.factors(r))
-        first = first.reshape(*first.shape[:2], r + 2, r + 2, r + 2)
-        source = transport_sweep.cell_major(first if shell else first[..., 1:-1, 1:-1, 1:-1],
-                                            shell=False)
+        source = ordinates.advance(ordinates.pad(ordinates.unfold(total)), ordinates.factors(r))
     acc = transport_sweep.solve(source, r, offvis, shell)
     if in_place is not None:
         acc -= in_place
-    values = transport_sweep.fold(acc, r, sh.BANDS2, "interior" if shell else "grid")
+    values = transport_sweep.fold(acc, r, sh.BANDS2)
     values += ordinates.emission_band2(total)
     outflow = transport_sweep.fold(acc, r, 4, "shell") if shell else None
     return PropagationResult(values, 0, flux(total), 0.0, False, outflow, swept=True)

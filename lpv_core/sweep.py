@@ -16,10 +16,11 @@ three steps: each cell is visited once per direction.
 
 Layout: the light lives on "positions", the cells of every hyperplane's bounding square in
 (u1, u2) in plane order, (positions, 3, directions); a cell's position differs per octant
-(its signs). Gathering the grid into positions and putting it back are one np.take / np.put.
-All 64 directions are swept together on one thread: split over the 2 cores of this machine
-the many small numpy operations of a plane contended for the GIL (16^3: 30 ms on one thread,
-49 ms on two, 82 ms on four).
+(its signs). Its input and output are ordinates' padded flat layout (q, 3, (R+2)^3), the
+layout unfold, launch and advance produce: gathering it into positions and putting it back
+are one np.take / np.put. All 64 directions are swept together on one thread: split over
+the 2 cores of this machine the many small numpy operations of a plane contended for the GIL
+(16^3: 30 ms on one thread, 49 ms on two, 82 ms on four).
 """
 
 from __future__ import annotations
@@ -62,16 +63,18 @@ def check_memory(r: int, shell: bool = True) -> None:
 
 def plan(r: int, shell: bool = True) -> dict:
     """Per R^3 grid (cached): the hyperplanes' squares (lo, hi, first position), per octant
-    (its direction slice in ordinates.tables, the cell of each position), and the gather
-    index from the cell-major layout (cells + 1, 3, q) flattened (the last cell a zero dummy
-    for positions outside the grid) into the positions (n, 3, q). ``shell``: the grid is
-    padded by one cell that collects what leaves it ((R+2)^3 cells); without it light leaving
-    the grid is dropped (R^3 cells: a third less work at 16^3)."""
+    (its direction slice in ordinates.tables, the padded cell of each position), and the
+    gather index from the padded flat layout with one zero dummy cell appended per row,
+    (q, 3, (R+2)^3 + 1) flattened, into the positions (n, 3, q). ``shell``: the sweep covers
+    the padded grid, whose one-cell shell collects what leaves it; without, only the R^3
+    interior (light leaving it is dropped: a third less work at 16^3)."""
     if (r, shell) in _PLANS:
         return _PLANS[r, shell]
     dirs, _, groups = ordinates.tables()
     q = len(dirs)
-    p = r + 2 if shell else r
+    big = r + 2  # the padded grid the layout holds
+    p = big if shell else r  # the grid swept
+    o = 0 if shell else 1  # where it starts in the padded grid
     planes, first = [], 0
     for t in range(3 * p - 2):
         lo, hi = max(0, t - 2 * (p - 1)), min(p - 1, t) + 1
@@ -85,16 +88,16 @@ def plan(r: int, shell: bool = True) -> dict:
     u0 = np.clip(u0, 0, p - 1)
     octants = []
     index = np.empty((first, 3, q), np.int64)
+    row = big**3 + 1
     for sl, _ in groups:
         sign = np.where(dirs[sl.start] < 0, -1, 1)
-        i, j, k = ((u if s > 0 else p - 1 - u) for u, s in zip((u0, u1, u2), sign))
-        cell = np.where(valid, (i * p + j) * p + k, p**3)
+        i, j, k = ((u if s > 0 else p - 1 - u) + o for u, s in zip((u0, u1, u2), sign))
+        cell = np.where(valid, (i * big + j) * big + k, big**3)
         octants.append((sl, cell))
-        index[:, :, sl] = ((cell[:, None, None] * 3 + np.arange(3)[None, :, None]) * q
-                           + np.arange(sl.start, sl.stop))
-    inside = np.ones((p, p, p), bool)
-    if shell:
-        inside[[0, -1]] = inside[:, [0, -1]] = inside[:, :, [0, -1]] = False
+        index[:, :, sl] = (np.arange(sl.start, sl.stop) * 3 + np.arange(3)[:, None]) * row \
+            + cell[:, None, None]
+    inside = np.zeros((big, big, big), bool)
+    inside[1:-1, 1:-1, 1:-1] = True
     _PLANS[r, shell] = {"p": p, "planes": planes, "positions": first, "octants": octants,
                         "index": index, "inside": inside.reshape(-1),
                         "shell": np.flatnonzero(~inside)}
@@ -133,8 +136,7 @@ def factors(r: int, offset_visibility: list | None, shell: bool = True) -> tuple
             if k_off not in padded:
                 v = inside
                 if offset_visibility is not None:
-                    v = offset_visibility[k_off].astype(np.float32)
-                    v = (np.pad(v, 1) if shell else v).reshape(-1)
+                    v = np.pad(offset_visibility[k_off].astype(np.float32), 1).reshape(-1)
                 padded[k_off] = np.append(v, np.float32(0.0))
             vis[soff][:, o] = padded[k_off][cell]
             weight[soff][sl] = w
@@ -181,22 +183,23 @@ def _sweep(x: np.ndarray, planes: list, vis: dict, weight: dict, column: np.ndar
 
 def solve(source: np.ndarray, r: int, offset_visibility: list | None,
           shell: bool = True) -> np.ndarray:
-    """A = source + T A for the cell-major light ``source`` (cells, 3, q): returns A in the
-    same layout. With ``shell`` the cells are the padded (R+2)^3 grid (the shell empty in
-    ``source``) and the shell of A holds what left the grid, summed over all steps; without,
-    the R^3 grid and what leaves it is dropped. ``offset_visibility``: per
-    propagation.OFFSETS entry the (R, R, R) transmittance of each cell towards it, or None."""
+    """A = source + T A for the light ``source`` in the padded flat layout (q, 3, (R+2)^3),
+    interior cells only: returns A in the same layout. With ``shell`` the shell of A holds
+    what left the grid, summed over all steps; without, it stays empty (the light is
+    dropped). ``offset_visibility``: per propagation.OFFSETS entry the (R, R, R)
+    transmittance of each cell towards it, or None."""
     pl = plan(r, shell)
     table = factors(r, offset_visibility, shell)
-    q = source.shape[-1]
-    flat = np.append(source.reshape(-1), np.zeros(3 * q, np.float32))  # + the dummy cell
+    q = source.shape[0]
+    flat = np.zeros((q, 3, source.shape[-1] + 1), np.float32)  # + the zero dummy cell
+    flat[..., :-1] = source
     x = np.take(flat, pl["index"])
     _sweep(x, pl["planes"], *table)
     out = np.zeros_like(flat)
     np.put(out, pl["index"], x)  # every cell once per direction; the dummy gets zeros
-    out = out[:-3 * q].reshape(source.shape)
+    out = out[..., :-1]
     if shell:  # the shell only receives: undo the 1 / (1 - w_0) the sweep applied to it
-        out[pl["shell"]] *= 1.0 - _stay()
+        out[..., pl["shell"]] *= (1.0 - _stay())[:, None, None]
     return out
 
 
@@ -206,33 +209,19 @@ def _stay() -> np.ndarray:
     return np.prod(1.0 - np.abs(dirs), axis=1).astype(np.float32)
 
 
-def cell_major(flux: np.ndarray, shell: bool = True) -> np.ndarray:
-    """(q, 3, R, R, R) flux per direction -> the cell-major layout (cells, 3, q), padded by
-    an empty one-cell shell when ``shell``."""
-    q, _, r = flux.shape[:3]
-    if not shell:
-        return np.ascontiguousarray(flux.transpose(2, 3, 4, 1, 0)).reshape(-1, 3, q)
-    out = np.zeros((r + 2, r + 2, r + 2, 3, q), np.float32)
-    out[1:-1, 1:-1, 1:-1] = flux.transpose(2, 3, 4, 1, 0)
-    return out.reshape(-1, 3, q)
-
-
-def fold(light: np.ndarray, r: int, coefficients: int, part: str = "grid") -> np.ndarray:
-    """SH (4 or 9 coefficients) of cell-major light (cells, 3, q): ``part`` "grid" of a
-    grid without shell (R, R, R, 3, c), "interior" of a padded one (the same shape), or
-    "shell" of a padded one, (R+2, R+2, R+2, 3, c) with the interior zeroed (the outflow
-    handed on to the next cascade)."""
+def fold(light: np.ndarray, r: int, coefficients: int, part: str = "interior") -> np.ndarray:
+    """SH (4 or 9 coefficients) of light in the padded flat layout (q, 3, (R+2)^3): ``part``
+    "interior" (R, R, R, 3, c), or "shell" (R+2, R+2, R+2, 3, c) with the interior zeroed
+    (the outflow handed on to the next cascade)."""
     dirs, basis, _ = ordinates.tables()
     if coefficients == sh.BANDS2:
         basis = sh.evaluate_basis2(dirs).astype(np.float32)
-    q = light.shape[-1]
-    if part == "grid":
-        return (light.reshape(-1, q) @ basis).reshape(r, r, r, 3, coefficients)
-    p = r + 2
-    grid = light.reshape(p, p, p, 3, q)
+    q, p = light.shape[0], r + 2
+    m = (basis.T @ light.reshape(q, -1)).reshape(coefficients, 3, p, p, p)
     if part == "interior":
-        inner = np.ascontiguousarray(grid[1:-1, 1:-1, 1:-1]).reshape(-1, q)
-        return (inner @ basis).reshape(r, r, r, 3, coefficients)
-    out = (light.reshape(-1, q) @ basis).reshape(p, p, p, 3, coefficients)
+        return np.ascontiguousarray(m[:, :, 1:-1, 1:-1, 1:-1].transpose(2, 3, 4, 1, 0))
+    if part != "shell":
+        raise ValueError(f"part must be 'interior' or 'shell', not {part!r}")
+    out = np.ascontiguousarray(m.transpose(2, 3, 4, 1, 0))
     out[1:-1, 1:-1, 1:-1] = 0.0
     return out
