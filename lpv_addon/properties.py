@@ -113,7 +113,8 @@ class LPVSceneSettings(bpy.types.PropertyGroup):
                      "closed space, more when it sees open ground stretching far from it"))
     iterations: IntProperty(
         name="Iterations", default=_CORE.iterations, min=0, max=1000, update=_setting_changed,
-        description="Propagation steps (0: automatic)",
+        description=("Propagation steps, one cell each (0: solve exactly in one sweep, as "
+                     "if light travelled until absorbed or out of the volume)"),
     )
     rsm_resolution: IntProperty(name="RSM Resolution", default=_CORE.rsm_resolution, min=16,
                                 max=2048,
