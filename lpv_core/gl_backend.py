@@ -637,6 +637,24 @@ def _dom_layout():
     return out, slot
 
 
+def _dom_pack(flux: np.ndarray, tiling: tuple[int, int]) -> bytes:
+    """(q, 3, RF, RF, RF) flux per direction -> the bytes of the used region of the flux
+    texture (_dom_layout slots, _dom_tiling tiles: slot t's cell (x, y, z) at texel
+    (z + RF (t % A), y, x + RF (t // A)))."""
+    octants, _ = _dom_layout()
+    rf = flux.shape[-1]
+    a, b = tiling
+    texels = np.zeros((rf * b, rf, rf * a, 4), np.float32)  # (depth, height, width, rgba)
+    for j0, n, s0, m in octants:
+        values = np.zeros((4 * m, rf, rf, rf), np.float32)
+        values[:3 * n] = flux[j0:j0 + n].reshape(3 * n, rf, rf, rf)  # k = 3 i + colour
+        values = values.reshape(m, 4, rf, rf, rf).transpose(0, 2, 3, 4, 1)
+        for i in range(m):
+            t = s0 + i
+            texels[rf * (t // a):rf * (t // a + 1), :, rf * (t % a):rf * (t % a + 1)] = values[i]
+    return texels.tobytes()
+
+
 def _not_power_of_two(n: int) -> int:
     """The smallest m >= n that is not a power of two."""
     while n & (n - 1) == 0:
@@ -1242,16 +1260,22 @@ class GLBackend:
         # ``sweep`` (dom's exact solve, sweep.py) is sequential over the grid's hyperplanes:
         # here the dom steps run up to ``iterations`` with the early stop instead, which
         # converges to the same limit.
-        sweep = extra.pop("sweep", False)
+        extra.pop("sweep", False)
         passing = extra.pop("passing", None)
         launch = extra.pop("launch", False) and angular == "dom"
-        if launch:  # ordinates.launch's first step is numpy's: all of it runs there (counted)
-            extra.update({"launch": True, "sweep": sweep, "passing": passing})
+        start = None
+        if launch and iterations > 0 and not extra:
+            # ordinates.launch (and the handed-on light's plain first step) in numpy, the
+            # steps after it here
+            host = injected.read() if isinstance(injected, GLGrid) else injected
+            start, injected = propagation.first_arrivals(host, visibility, occlude_first_step,
+                                                         passing)
         elif passing is not None:  # without a launch, handed-on light is injected light
             injected = (injected.read() if isinstance(injected, GLGrid) else injected) + passing
         if angular == "dom" and not extra:
             res = self._propagate_dom(injected, iterations, min_fraction, visibility,
-                                      occlude_first_step, capture_outflow, readback, keep_gpu)
+                                      occlude_first_step, capture_outflow, readback, keep_gpu,
+                                      start)
             if res is not None:
                 return res
         if angular not in ("sh", "m1") or capture_outflow or extra:
@@ -1326,13 +1350,16 @@ class GLBackend:
         return tex
 
     def _propagate_dom(self, injected, iterations, min_fraction, visibility, occlude_first_step,
-                       capture_outflow, readback, keep_gpu) -> propagation.PropagationResult:
+                       capture_outflow, readback, keep_gpu, start=None
+                       ) -> propagation.PropagationResult:
         """propagation._propagate_ordinates on the GPU: unfold once, step (one dispatch per
         octant) until the moved flux falls below ``min_fraction`` of the unfolded flux, fold
         the accumulated flux into bands 0-2 (+ the injected grid, extended to band 2 as
         ordinates.emission_band2) once: values (R, R, R, 3, 9), the outflow 4 moments. None if
         the flux textures would exceed GL_MAX_3D_TEXTURE_SIZE (the caller runs the numpy
-        code)."""
+        code). ``start``: the first step's arrivals, computed on the host (padded flat layout
+        (q, 3, (R+2)^3), propagation.first_arrivals): uploaded as step 1, the steps after it
+        run here."""
         octants, slots = _dom_layout()
         r = injected.resolution if isinstance(injected, GLGrid) else injected.shape[0]
         pad = 1 if capture_outflow else 0
@@ -1371,7 +1398,22 @@ class GLBackend:
             total0 = float(sums[3])
             fraction = 1.0 if total0 > 0 else 0.0
             done, early = 0, total0 <= 0
-            for _ in range(0 if early else max(int(iterations), 0)):
+            if start is not None and not early and iterations > 0:
+                grid = start.reshape(*start.shape[:2], r + 2, r + 2, r + 2).copy()
+                shell = grid.copy()
+                shell[..., 1:-1, 1:-1, 1:-1] = 0.0
+                grid -= shell  # the interior: what goes on stepping (and is accumulated)
+                if not pad:
+                    grid = grid[..., 1:-1, 1:-1, 1:-1]
+                packed = _dom_pack(grid, tiling)
+                for tex in (cur, acc):
+                    tex.write(packed, viewport=(0, 0, 0) + size)
+                if pad:
+                    outflow.write(_dom_pack(shell, tiling), viewport=(0, 0, 0) + size)
+                done = 1
+                fraction = float(grid.sum(dtype=np.float64)) / total0
+                early = fraction < min_fraction
+            for _ in range(0 if early else max(int(iterations) - done, 0)):
                 use_vis = vis is not None and (done > 0 or occlude_first_step)
                 cur.bind_to_image(0, read=True, write=False)
                 nxt.bind_to_image(1, read=False, write=True)
@@ -1650,14 +1692,16 @@ def measure(resolution: int = 16, vpls: int = 16384, receivers: int = 65536,
     injected = injection.inject(g, pos, nrm, flux)
     kw = {"angular": angular}
     values = propagation.propagate(injected, iterations, **kw).values
-    # what the engine asks for: dom light launched from its surfaces, swept to convergence
-    engine_kw = dict(kw, launch=True, sweep=True) if angular == "dom" else kw
+    # What the engine asks for. dom: light launched from its surfaces, to convergence (numpy
+    # sweeps; GL steps to the early stop, capped at engine.auto_iterations = 3 R).
+    its, stop, engine_kw = iterations, 0.0, kw
+    if angular == "dom":
+        its, stop, engine_kw = 3 * resolution, 1e-3, dict(kw, launch=True, sweep=True)
     runs = {
         ("inject", "numpy"): lambda: injection.inject(g, pos, nrm, flux),
         ("inject", "gl"): lambda: gl.inject(g, pos, nrm, flux).release(),
-        ("propagate", "numpy"): lambda: propagation.propagate(injected, iterations, 0.0,
-                                                             **engine_kw),
-        ("propagate", "gl"): lambda: gl.propagate(injected, iterations, 0.0, **engine_kw),
+        ("propagate", "numpy"): lambda: propagation.propagate(injected, its, stop, **engine_kw),
+        ("propagate", "gl"): lambda: gl.propagate(injected, its, stop, **engine_kw),
         ("lookup", "numpy"): lambda: lookup.irradiance(g, values, rpos, rnrm, **kw),
         ("lookup", "gl"): lambda: gl.irradiance(g, values, rpos, rnrm, **kw),
     }

@@ -388,6 +388,22 @@ def _propagate_capturing(injected, iterations, min_fraction, visibility, reproje
     return PropagationResult(acc, done, flux(injected), fraction, early, outflow)
 
 
+def first_arrivals(injected: np.ndarray, visibility: np.ndarray | None,
+                   occlude_first_step: bool, passing: np.ndarray | None = None):
+    """(arrivals, total): the first dom step of ``injected`` launched from its surfaces
+    (ordinates.launch) plus the plain first step of ``passing``, in the padded flat layout
+    (q, 3, (R+2)^3; the shell holds what left), and the grid both came from (their sum):
+    where another backend takes over the steps after the launch."""
+    r = injected.shape[0]
+    offvis = _offset_visibilities(visibility)
+    arrivals = ordinates.launch(injected, offvis if occlude_first_step else None)
+    if passing is None:
+        return arrivals, injected
+    table = ordinates.factors(r, offvis if occlude_first_step else None)
+    arrivals += ordinates.advance(ordinates.pad(ordinates.unfold(passing)), table)
+    return arrivals, injected + passing
+
+
 def _propagate_ordinates(injected, iterations, min_fraction, visibility, occlude_first_step,
                          capture_outflow, launch=False, passing=None) -> PropagationResult:
     """propagate() with angular="dom" (ordinates.py): the injected lobes are unfolded once into
@@ -406,10 +422,7 @@ def _propagate_ordinates(injected, iterations, min_fraction, visibility, occlude
     outflow = np.zeros_like(acc) if capture_outflow else None
     done = 0
     if launch:
-        cur = ordinates.launch(injected, offvis if occlude_first_step else None)
-        if passing is not None:
-            cur += ordinates.advance(ordinates.pad(ordinates.unfold(passing)),
-                                     occluded if occlude_first_step else free)
+        cur, _ = first_arrivals(injected, visibility, occlude_first_step, passing)
         total0 = float(ordinates.unfold(total).sum(dtype=np.float64))
         if total0 > 0 and iterations > 0:
             ordinates.take_shell(cur, r, outflow)

@@ -172,6 +172,30 @@ def test_propagation_agrees(gl, angular, reprojection, occluded, r):
     np.testing.assert_allclose(got.injected_flux, ref.injected_flux, rtol=1e-5)  # f32 sums
 
 
+@pytest.mark.parametrize("capture_outflow", [False, True])
+@pytest.mark.parametrize("passing", [False, True])
+def test_launched_dom_propagation_agrees(gl, capture_outflow, passing):
+    """Light launched from its surfaces (ordinates.launch, computed on the host) and, in a
+    coarser cascade, light handed on from a finer one: GL steps on from the launch and agrees
+    with numpy's steps, without falling back."""
+    r = 11
+    g, rng, _pos, _nrm, _flux, injected = _injected_case(r, 41, 1200)
+    kw = {"visibility": _visibility(r, rng), "angular": "dom", "occlude_first_step": True,
+          "capture_outflow": capture_outflow, "launch": True}
+    if passing:
+        kw["passing"] = 0.3 * injection.inject(g, *_vpls(g, 300, rng, spread=0.0))
+    be = gl.backend()
+    before = be.fallbacks
+    ref = propagation.propagate(injected, 9, min_fraction=0.0, **kw)
+    got = be.propagate(injected, 9, min_fraction=0.0, **kw)
+    assert be.fallbacks == before
+    assert got.iterations == ref.iterations == 9
+    _agree(got.values, ref.values, f"launched dom, passing {passing}")
+    if capture_outflow:
+        _agree(got.outflow, ref.outflow, f"launched dom outflow, passing {passing}")
+    np.testing.assert_allclose(got.injected_flux, ref.injected_flux, rtol=1e-5)
+
+
 def test_propagation_early_stop_and_edge_cases_agree(gl):
     g = _grid(10, seed=3)
     rng = np.random.default_rng(3)
