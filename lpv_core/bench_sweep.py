@@ -170,7 +170,9 @@ def _engine_case(eng: engine.Engine, scene, repeat: int) -> dict:
             continue
         for k, v in stats.ms.items():
             samples.setdefault(k, []).append(v)
-        steps.append(int(sum(stats.info.get("iterations") or [0])))
+        # steps per update ("sweep" entries, automatic iterations, count none)
+        steps.append(int(sum(n for n in stats.info.get("iterations") or [0]
+                             if isinstance(n, int))))
     med = {k: statistics.median(v) for k, v in samples.items()}
     n_steps = statistics.median(steps) if steps else 0
     if n_steps and "propagation" in med:
