@@ -457,7 +457,8 @@ def _sweep_ordinates(injected, visibility, occlude_first_step, capture_outflow, 
                      passing=None) -> PropagationResult:
     """propagate(angular="dom", sweep=True): A = y + T A solved by sweep.solve, y the first
     step's arrivals (ordinates.launch of ``injected`` with ``launch``), or the unfolded light
-    itself when ``occlude_first_step`` (A then less it); ``passing`` is always the latter."""
+    itself when ``occlude_first_step`` (A then less it). With ``launch``, ``passing`` is
+    always the latter; without, it is part of the injected grid."""
     r = injected.shape[0]
     transport_sweep.check_memory(r, capture_outflow)
     shell = capture_outflow
