@@ -221,7 +221,7 @@ class Engine:
             geo = geometry_key(scene)
         lo, hi, chain = self._chain(scene, stats, geo)
         if settings.angular == "dom":  # a clear error before the RSMs, not a MemoryError
-            check = sweep.check_memory if settings.iterations == 0 else ordinates.check_memory
+            check = sweep.check_memory if sweeps(settings) else ordinates.check_memory
             check(settings.grid_resolution, len(chain) > 1)
         grid = chain[-1]
         active = _active_lights(scene, stats)
@@ -545,9 +545,7 @@ class _ChainRun:
         self.iterations_cap, self.settings = iterations, settings
         self.backend, self.stats = backend, stats
         self.iterations: list = []  # steps run per propagation ("sweep": solved exactly)
-        # Automatic iterations with discrete ordinates: the transport sweep (sweep.py) gives
-        # the limit of infinitely many steps, for the work of about three.
-        self.sweep = settings.angular == "dom" and settings.iterations == 0
+        self.sweep = sweeps(settings)
 
     def propagate(self, positions, normals, flux, reach: list | None = None) -> list:
         """Propagated grids (one per cascade) of the VPLs (N, 3) x3; ``reach[c]`` False: the
@@ -755,6 +753,12 @@ def occlusion(scene: Scene, grid: Grid, stats: Stats | None = None):
             if stats is not None:
                 stats.add_ms("geometry_volume", time.perf_counter() - t0)
     return visibility, gaps
+
+
+def sweeps(settings) -> bool:
+    """Automatic iterations with discrete ordinates: the transport sweep (sweep.py) gives the
+    limit of infinitely many steps, for the work of about three."""
+    return settings.angular == "dom" and settings.iterations == 0
 
 
 def auto_iterations(resolution: int, angular: str = "sh") -> int:

@@ -1693,10 +1693,13 @@ def measure(resolution: int = 16, vpls: int = 16384, receivers: int = 65536,
     kw = {"angular": angular}
     values = propagation.propagate(injected, iterations, **kw).values
     # What the engine asks for. dom: light launched from its surfaces, to convergence (numpy
-    # sweeps; GL steps to the early stop, capped at engine.auto_iterations = 3 R).
+    # sweeps; GL steps to the early stop, capped at engine.auto_iterations).
     its, stop, engine_kw = iterations, 0.0, kw
     if angular == "dom":
-        its, stop, engine_kw = 3 * resolution, 1e-3, dict(kw, launch=True, sweep=True)
+        from .engine import auto_iterations
+
+        its, stop = auto_iterations(resolution, angular), 1e-3
+        engine_kw = dict(kw, launch=True, sweep=True)
     runs = {
         ("inject", "numpy"): lambda: injection.inject(g, pos, nrm, flux),
         ("inject", "gl"): lambda: gl.inject(g, pos, nrm, flux).release(),

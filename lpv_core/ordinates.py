@@ -90,6 +90,11 @@ def unfold(values: np.ndarray) -> np.ndarray:
     return out.reshape(len(dirs), 3, *shape)
 
 
+def _offset_index(off: np.ndarray) -> np.ndarray:
+    """Index into propagation.OFFSETS of neighbour offsets (..., 3) in {-1, 0, 1}."""
+    return ((off[..., 0] + 1) * 3 + off[..., 1] + 1) * 3 + off[..., 2] + 1
+
+
 LAUNCH_CELLS = 0.5  # injection.inject moves a VPL this far off its surface [KD10 sec. 4.2]
 
 
@@ -151,9 +156,8 @@ def launch(injected: np.ndarray, offset_visibility: list | None = None) -> np.nd
              * per_axis[None, None, :, 2]).reshape(8, q, -1) * own  # (8 corners, q, n)
         corners = np.array(list(np.ndindex(2, 2, 2)))  # (8, 3)
         offs = octant_base[None] + corners[:, None]  # (8, q, 3): each direction's offsets
-        k_off = ((offs[..., 0] + 1) * 3 + offs[..., 1] + 1) * 3 + offs[..., 2] + 1  # (8, q)
         if vis is not None:
-            w *= vis[k_off]  # (8, q, n)
+            w *= vis[_offset_index(offs)]  # (8, q, n)
         dense = np.zeros((8, q, 1, p**3), np.float32)
         dense[:, :, 0, start] = w
         shifts = (offs[..., 0] * p + offs[..., 1]) * p + offs[..., 2]  # (8, q)
@@ -173,7 +177,7 @@ def launch(injected: np.ndarray, offset_visibility: list | None = None) -> np.nd
                 off = bs + c
                 w = np.prod(np.where(c == 1, fr, 1.0 - fr), axis=-1)
                 if vis is not None:
-                    w = w * vis[((off[:, 0] + 1) * 3 + off[:, 1] + 1) * 3 + off[:, 2] + 1, nn]
+                    w = w * vis[_offset_index(off), nn]
                 flat = start[nn] + (off[:, 0] * p + off[:, 1]) * p + off[:, 2]
                 for colour in range(3):
                     np.add.at(flat_out, (jj * 3 + colour) * p**3 + flat,

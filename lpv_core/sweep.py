@@ -27,11 +27,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import ordinates, sh
+from . import ordinates
 
 SIGNED_OFFSETS = [(a, b, c) for a in (0, 1) for b in (0, 1) for c in (0, 1) if a + b + c]
 _PLANS: dict = {}
-_FACTORS: list = []  # [(visibility array or None, resolution, factors)], most recent first
+_FACTORS: list = []  # [(visibility list or None, (R, shell), factors)], most recent first
 FACTOR_CACHE = 4  # visibility arrays whose sweep factors are kept (one per cascade)
 
 
@@ -199,29 +199,19 @@ def solve(source: np.ndarray, r: int, offset_visibility: list | None,
     np.put(out, pl["index"], x)  # every cell once per direction; the dummy gets zeros
     out = out[..., :-1]
     if shell:  # the shell only receives: undo the 1 / (1 - w_0) the sweep applied to it
-        out[..., pl["shell"]] *= (1.0 - _stay())[:, None, None]
+        out[..., pl["shell"]] /= table[3][:, None, None]
     return out
 
 
-def _stay() -> np.ndarray:
-    """(q,) float32 share of a direction's flux that a step leaves in its cell, w_0."""
-    dirs, _, _ = ordinates.tables()
-    return np.prod(1.0 - np.abs(dirs), axis=1).astype(np.float32)
-
-
 def fold(light: np.ndarray, r: int, coefficients: int, part: str = "interior") -> np.ndarray:
-    """SH (4 or 9 coefficients) of light in the padded flat layout (q, 3, (R+2)^3): ``part``
+    """ordinates.fold of light in the padded flat layout (q, 3, (R+2)^3): ``part``
     "interior" (R, R, R, 3, c), or "shell" (R+2, R+2, R+2, 3, c) with the interior zeroed
     (the outflow handed on to the next cascade)."""
-    dirs, basis, _ = ordinates.tables()
-    if coefficients == sh.BANDS2:
-        basis = sh.evaluate_basis2(dirs).astype(np.float32)
-    q, p = light.shape[0], r + 2
-    m = (basis.T @ light.reshape(q, -1)).reshape(coefficients, 3, p, p, p)
-    if part == "interior":
-        return np.ascontiguousarray(m[:, :, 1:-1, 1:-1, 1:-1].transpose(2, 3, 4, 1, 0))
-    if part != "shell":
+    if part not in ("interior", "shell"):
         raise ValueError(f"part must be 'interior' or 'shell', not {part!r}")
-    out = np.ascontiguousarray(m.transpose(2, 3, 4, 1, 0))
+    p = r + 2
+    out = ordinates.fold(light.reshape(light.shape[0], 3, p, p, p), coefficients)
+    if part == "interior":
+        return np.ascontiguousarray(out[1:-1, 1:-1, 1:-1])
     out[1:-1, 1:-1, 1:-1] = 0.0
     return out
