@@ -18,6 +18,7 @@ from . import (
     cascades,
     geometry_volume,
     injection,
+    jit,
     lookup,
     ordinates,
     planner,
@@ -113,8 +114,12 @@ class Engine:
         """The compute backend for ``settings.backend``: "numpy", "gl" (moderngl compute
         shaders, gl_backend.py) or "auto" (per stage, the faster of the two on this machine,
         measured on a small grid once per machine and kept on disk, gl_backend.auto_backend).
-        Each has inject, propagate, irradiance and discard (frees what inject returned)."""
+        Each has inject, propagate, irradiance and discard (frees what inject returned).
+        The CPU stages run numba-compiled kernels where numba is installed (jit.py): the
+        stats' "cpu_kernels" says which."""
         name = getattr(settings, "backend", "numpy")
+        if stats is not None:
+            stats.info["cpu_kernels"] = jit.name()
         if name == "auto":
             from . import gl_backend
 
@@ -617,8 +622,10 @@ def reflectance_key(scene: Scene) -> str:
 
 
 def rsm_key(rsm) -> str:
-    """Digest of an RSM's VPLs: equal digests inject the same light."""
-    return _digest(rsm.position, rsm.normal, rsm.flux)
+    """Digest of an RSM's VPL flux: compared only between RSMs of an unchanged light in
+    unchanged geometry (Engine._light: the scene key holds both), whose positions and normals
+    are the same, so equal digests inject the same light (a third of the bytes to hash)."""
+    return _digest(rsm.flux)
 
 
 def content_key(scene: Scene, geo: str | None = None) -> str:

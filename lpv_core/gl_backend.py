@@ -81,7 +81,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import closure, propagation, sh
+from . import closure, jit, propagation, sh
 from .grid import Grid
 from .lookup import REPROJECTION_GAIN
 
@@ -1738,7 +1738,7 @@ def choose(ms: dict) -> dict:
 CACHE_FILE = "auto_backend.json"
 # The modules whose code measure() times (a change to any of them measures again).
 _TIMED_MODULES = ("gl_backend", "propagation", "ordinates", "sweep", "injection", "lookup",
-                  "closure", "sh", "grid")
+                  "closure", "sh", "grid", "jit")
 _FINGERPRINT: str | None = None
 
 
@@ -1777,7 +1777,7 @@ def cache_key(gl: GLBackend, angular: str) -> str:
     parts = {"vendor": info.get("GL_VENDOR", ""), "renderer": info.get("GL_RENDERER", ""),
              "version": info.get("GL_VERSION", ""), "angular": angular,
              "numpy": np.__version__, "cpus": os.cpu_count(), "margin": AUTO_MARGIN,
-             "code": code_fingerprint()}
+             "code": code_fingerprint(), "cpu_kernels": jit.name()}
     return json.dumps(parts, sort_keys=True)
 
 

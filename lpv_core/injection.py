@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import sh
+from . import jit, sh
 from .grid import Grid
 
 
@@ -87,11 +87,15 @@ def inject(grid: Grid, positions: np.ndarray, normals: np.ndarray, flux: np.ndar
            offset_cells: float = 0.5, visibility: np.ndarray | None = None) -> np.ndarray:
     """SH intensity grid (R, R, R, 3, 4) float32 from VPLs (N, 3) position, normal, flux (W).
 
-    With ``visibility`` the splat does not reach cells behind occluders (visible_corners)."""
+    With ``visibility`` the splat does not reach cells behind occluders (visible_corners).
+    With jit.enabled() a compiled kernel does the same per VPL (~10x faster); the numpy code
+    below is the reference."""
     out = grid.zeros()
     n = positions.shape[0]
     if n == 0:
         return out
+    if jit.enabled():
+        return _inject_compiled(grid, positions, normals, flux, offset_cells, visibility, out)
     normals = np.asarray(normals, np.float64)
     shifted = np.asarray(positions, np.float64) + normals * (offset_cells * grid.cell_size)
     coords = grid.cell_coords(shifted)
@@ -107,3 +111,125 @@ def inject(grid: Grid, positions: np.ndarray, normals: np.ndarray, flux: np.ndar
             flat_idx, weights=(wts * values[:, ch]).ravel(), minlength=cells
         )
     return out
+
+
+_C0, _C1 = sh.C0, sh.C1  # sh.cosine_lobe's constants, as plain globals for the kernel
+# The compiled splat runs as two halves on two threads, each into its own float64 sums, from
+# SPLIT_MIN VPLs on grids of at most SPLIT_CELLS cells (sums of <= 384 KiB, cheap to zero and
+# add). Measured on this 2-core machine, R=16, 65k VPLs with visibility: 8.0 -> 5.9 ms; at R=32
+# the second 3 MiB of sums made it slower (random VPL order: 11 -> 29 ms).
+SPLIT_MIN = 8192
+SPLIT_CELLS = 16 ** 3
+
+
+def _inject_compiled(grid: Grid, positions, normals, flux, offset_cells, visibility,
+                     out: np.ndarray) -> np.ndarray:
+    """inject() through _splat_kernel: same arithmetic as the numpy path, into float64 sums."""
+    pos = np.ascontiguousarray(positions, np.float64)
+    nrm = np.ascontiguousarray(normals, np.float64)
+    phi = np.ascontiguousarray(flux, np.float64)
+    r = grid.resolution
+    cells = r ** 3
+    use_vis = visibility is not None
+    vis = (np.ascontiguousarray(visibility).reshape(6, cells) if use_vis
+           else np.ones((6, 1), np.float32))
+    args = (pos, nrm, phi, grid.origin_array, float(grid.cell_size),
+            float(offset_cells * grid.cell_size), r, vis, use_vis)
+    n = pos.shape[0]
+    acc = np.zeros((cells, 12), np.float64)
+    if n < SPLIT_MIN or cells > SPLIT_CELLS:
+        _splat_kernel(*args, acc, 0, n)
+    else:  # two halves on two threads (the kernel releases the GIL)
+        from .ordinates import _pool
+
+        other = np.zeros_like(acc)
+        half = n // 2
+        job = _pool().submit(_splat_kernel, *args, other, half, n)
+        _splat_kernel(*args, acc, 0, half)
+        job.result()
+        acc += other
+    out.reshape(cells, 12)[...] = acc
+    return out
+
+
+@jit.kernel
+def _splat_kernel(pos, nrm, flux, origin, cell_size, shift, r, vis, use_vis, acc, lo, hi):
+    """VPLs lo..hi-1 added to ``acc`` (R^3, 12) float64: trilinear_corners, visible_corners
+    (same tie tolerance, clip and all-hidden rule) and the cosine lobe x flux / pi, per VPL.
+
+    A VPL with all 8 corners outside the grid (or a non-finite position) adds nothing, as its
+    zero weights do in numpy; it is skipped before its cell index is made an integer. Corners
+    outside are skipped too (numpy adds 0 x value to cell 0: the same unless flux is inf/NaN)."""
+    c0 = _C0
+    c1 = _C1
+    base = np.empty(3, np.int64)
+    frac = np.empty(3, np.float64)
+    fac = np.ones((3, 2), np.float64)  # per axis: visibility factor of the corner at +0, +1
+    near = np.empty(3, np.int64)
+    w = np.empty(8, np.float64)
+    seen = np.empty(8, np.float64)
+    idx = np.empty(8, np.int64)
+    vals = np.empty(12, np.float64)
+    for i in range(lo, hi):
+        skip = False
+        for a in range(3):
+            c = (pos[i, a] + nrm[i, a] * shift - origin[a]) / cell_size - 0.5
+            b = np.floor(c)
+            if not (b >= -1.0 and b <= r - 1.0):  # both corners outside (or NaN)
+                skip = True
+                break
+            base[a] = np.int64(b)
+            frac[a] = c - b
+        if skip:
+            continue
+        total_w = 0.0
+        k = 0
+        for dx in range(2):
+            ix = base[0] + dx
+            wx = frac[0] if dx else 1.0 - frac[0]
+            for dy in range(2):
+                iy = base[1] + dy
+                wy = frac[1] if dy else 1.0 - frac[1]
+                for dz in range(2):
+                    iz = base[2] + dz
+                    wz = frac[2] if dz else 1.0 - frac[2]
+                    if 0 <= ix < r and 0 <= iy < r and 0 <= iz < r:
+                        idx[k] = (ix * r + iy) * r + iz
+                        w[k] = wx * wy * wz
+                    else:
+                        idx[k] = -1
+                        w[k] = 0.0
+                    total_w += w[k]
+                    k += 1
+        if use_vis:
+            flat_cell = 0
+            for a in range(3):
+                near[a] = 1 if frac[a] > 0.5 + 1e-3 else 0
+                flat_cell = flat_cell * r + min(max(base[a] + near[a], 0), r - 1)
+            for a in range(3):  # step from the nearest cell to the corner at +0 / +1: -1, 0, +1
+                fac[a, 0] = np.float64(vis[2 * a + 1, flat_cell]) if near[a] else 1.0
+                fac[a, 1] = 1.0 if near[a] else np.float64(vis[2 * a, flat_cell])
+            total = 0.0
+            k = 0
+            for dx in range(2):
+                for dy in range(2):
+                    for dz in range(2):
+                        seen[k] = w[k] * (fac[0, dx] * fac[1, dy] * fac[2, dz])
+                        total += seen[k]
+                        k += 1
+            if total > 0.0:  # else every corner is hidden: plain trilinear weights
+                scale = total_w / total
+                for k in range(8):
+                    w[k] = seen[k] * scale
+        for ch in range(3):
+            f = flux[i, ch] / np.pi
+            vals[4 * ch] = f * c0
+            vals[4 * ch + 1] = f * (c1 * -nrm[i, 1])
+            vals[4 * ch + 2] = f * (c1 * nrm[i, 2])
+            vals[4 * ch + 3] = f * (c1 * -nrm[i, 0])
+        for k in range(8):
+            j = idx[k]
+            if j >= 0:
+                wk = w[k]
+                for m in range(12):
+                    acc[j, m] += wk * vals[m]

@@ -122,19 +122,27 @@ def _any_up(d) -> np.ndarray:
 
 
 def texel_directions(view: LightView, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
-    """World directions through texel centres (H, W, 3), rows top-first, and solid angles (H, W).
+    """World directions through texel centres (H, W, 3), rows top-first, and solid angles (H, W):
+    texel_rays of every texel."""
+    rows, cols = np.indices((height, width)).reshape(2, -1)
+    dirs, solid = texel_rays(view, rows, cols, width, height)
+    return dirs.reshape(height, width, 3), solid.reshape(height, width)
+
+
+def texel_rays(view: LightView, rows: np.ndarray, cols: np.ndarray, width: int,
+               height: int) -> tuple[np.ndarray, np.ndarray]:
+    """World directions (N, 3) through the centres of texels (rows top-first, columns) of a
+    perspective view, and their solid angles (N,).
 
     A texel of size du x dv on the image plane at distance 1, at plane coordinates (u, v),
     subtends du dv / (1 + u^2 + v^2)^(3/2) steradians.
     """
     t = view.tan_half
-    u = ((np.arange(width) + 0.5) / width * 2.0 - 1.0) * t
-    v = (1.0 - (np.arange(height) + 0.5) / height * 2.0) * t
-    uu, vv = np.meshgrid(u, v)
+    u = ((np.asarray(cols) + 0.5) / width * 2.0 - 1.0) * t
+    v = (1.0 - (np.asarray(rows) + 0.5) / height * 2.0) * t
     inv = np.linalg.inv(view.view)
     right, up, fwd = inv[:3, 0], inv[:3, 1], -inv[:3, 2]
-    dirs = uu[..., None] * right + vv[..., None] * up + fwd
-    r2 = 1.0 + uu * uu + vv * vv
-    dirs /= np.sqrt(r2)[..., None]
+    r2 = 1.0 + u * u + v * v
+    dirs = (u[:, None] * right + v[:, None] * up + fwd) / np.sqrt(r2)[:, None]
     solid = (2.0 * t / width) * (2.0 * t / height) / r2 ** 1.5
     return dirs, solid

@@ -31,7 +31,7 @@ import os
 
 import numpy as np
 
-from . import closure, sh
+from . import closure, jit, sh
 
 DIRECTIONS = 64  # 128 / 256: sunlit room 0.517 -> 0.501 / 0.496 (1.5x / 2.6x time); session 5, swept
 # and launched, 128: sunlit 0.422 -> 0.410, Cornell spot 0.197 -> 0.195, point room 0.150 -> 0.148
@@ -82,12 +82,136 @@ def unfold(values: np.ndarray) -> np.ndarray:
     cells = cells.reshape(-1, 4)
     out = np.zeros((len(dirs), cells.shape[0]), np.float32)
     lit = np.flatnonzero(cells[:, 0] > 0)
-    if lit.size:
+    if lit.size and jit.enabled():
+        _unfold_kernel(cells, lit, lit, dirs, out)
+    elif lit.size:
         held, mean_cos, d = closure.moments(cells[lit])
         w = closure.emission_density(mean_cos[None, :], dirs @ d.T).astype(np.float32)
         w = np.where(w.sum(axis=0) > 0, w, np.float32(1.0))
         out[:, lit] = w * (held / w.sum(axis=0)).astype(np.float32)[None, :]
     return out.reshape(len(dirs), 3, *shape)
+
+
+@jit.kernel
+def _unfold_kernel(cells, rows, dest, dirs, out):  # pragma: no cover - compiled
+    """``unfold`` row by row (compiled): out[:, dest[t]] = the flux per direction of the moments
+    cells[rows[t]] (closure.moments, then emission_density normalised to the row's flux; zero
+    where band 0 <= 0). float32 throughout, as the numpy code."""
+    q = dirs.shape[0]
+    sqrt_4pi = np.float32(sh.SQRT_4PI)
+    to_flux = np.float32(closure.FLUX_FROM_BAND1)
+    max_cos = np.float32(closure.MAX_MEAN_COSINE)
+    lo, hi = np.float32(0.5 + 1e-6), np.float32(closure.LAMBERTIAN_MEAN_COSINE)
+    zero, half, one, two, four = (np.float32(0.0), np.float32(0.5), np.float32(1.0),
+                                  np.float32(2.0), np.float32(4.0))
+    w = np.empty(q, np.float32)
+    for t in range(rows.shape[0]):
+        row, col = rows[t], dest[t]
+        c0 = cells[row, 0]
+        if not c0 > zero:
+            for j in range(q):
+                out[j, col] = zero
+            continue
+        held = c0 * sqrt_4pi
+        vx, vy, vz = -cells[row, 3] * to_flux, -cells[row, 1] * to_flux, cells[row, 2] * to_flux
+        norm = np.sqrt(vx * vx + vy * vy + vz * vz)
+        r = min(max(norm / held, zero), max_cos)
+        if norm > zero:
+            vx, vy, vz = vx / norm, vy / norm, vz / norm
+        else:
+            vx, vy, vz = zero, zero, zero
+        rr = min(max(r, lo), hi)
+        n = (two * rr - one) / (one - rr)
+        total = zero
+        for j in range(q):
+            c = dirs[j, 0] * vx + dirs[j, 1] * vy + dirs[j, 2] * vz
+            if r > half:
+                w[j] = np.exp(n * np.log(c)) if c > zero else zero
+            else:
+                w[j] = (one - two * r) + (four * r if c > zero else zero)
+            total += w[j]
+        if not total > zero:
+            for j in range(q):
+                w[j] = one
+            total = np.float32(q)
+        scale = held / total
+        for j in range(q):
+            out[j, col] = w[j] * scale
+
+
+@jit.kernel
+def _launch_kernel(flux, m, start, dirs, vis, p, out):  # pragma: no cover - compiled
+    """``launch``'s scatter (compiled): lit cell i's flux
+    flux[j, 3 i + colour] moves along j, shifted sideways by its emission direction m[i], split
+    trilinearly over the 8 cells around, each share times vis[i, offset] (when vis has
+    columns), into out[j, colour, start[i] + shift] (padded flat layout). One loop over (cell,
+    corner, colour) in place of the numpy code's dense octant step plus np.add.at; float32
+    weights formed in the numpy code's order. Scalars only in the loop (a small work array
+    would be re-read after every store to ``out``: 1.3x slower)."""
+    has_vis = vis.shape[1] > 0
+    half, eps = np.float32(LAUNCH_CELLS), np.float32(1e-6)
+    zero, one = np.float32(0.0), np.float32(1.0)
+    for j in range(dirs.shape[0]):  # direction outermost: out[j] (3 (R+2)^3) stays in cache
+        dx, dy, dz = dirs[j, 0], dirs[j, 1], dirs[j, 2]
+        for i in range(m.shape[0]):
+            f0, f1, f2 = flux[j, 3 * i], flux[j, 3 * i + 1], flux[j, 3 * i + 2]
+            if f0 == zero and f1 == zero and f2 == zero:
+                continue  # nothing emitted this way (behind the surface): it would add zeros
+            mx, my, mz = m[i, 0], m[i, 1], m[i, 2]
+            cos = dx * mx + dy * my + dz * mz
+            sx, sy, sz = dx - cos * mx, dy - cos * my, dz - cos * mz
+            sin = np.sqrt(sx * sx + sy * sy + sz * sz)
+            scale = half / max(max(cos, sin), eps) if cos > zero else zero
+            mvx = min(max(dx + scale * sx, -one), one)
+            mvy = min(max(dy + scale * sy, -one), one)
+            mvz = min(max(dz + scale * sz, -one), one)
+            bx, by, bz = -1 if mvx < zero else 0, -1 if mvy < zero else 0, -1 if mvz < zero else 0
+            fx = mvx + one if mvx < zero else mvx  # move - base: the corners are base + {0, 1}
+            fy = mvy + one if mvy < zero else mvy
+            fz = mvz + one if mvz < zero else mvz
+            corner = start[i] + (bx * p + by) * p + bz
+            for cx in range(2):
+                wx = fx if cx else one - fx
+                for cy in range(2):
+                    wxy = wx * (fy if cy else one - fy)
+                    for cz in range(2):
+                        w = wxy * (fz if cz else one - fz)
+                        if has_vis:
+                            w = w * vis[i, ((bx + cx + 1) * 3 + by + cy + 1) * 3 + bz + cz + 1]
+                        cell = corner + (cx * p + cy) * p + cz
+                        out[j, 0, cell] += w * f0
+                        out[j, 1, cell] += w * f1
+                        out[j, 2, cell] += w * f2
+
+
+def _launch_compiled(injected: np.ndarray, offset_visibility: list | None) -> np.ndarray:
+    """``launch`` by the compiled kernels: the lit cells' unfold (_unfold_kernel, those cells
+    only) and one scatter loop (_launch_kernel). Single-threaded: dealing the directions over
+    ``_pool`` measured no faster on this 2-core machine (16^3: 1.9 -> 2.5 ms, 32^3 the same)."""
+    dirs, _, _ = tables()
+    q = len(dirs)
+    r = injected.shape[0]
+    p = r + 2
+    out = np.zeros((q, 3, p**3), np.float32)
+    cells = np.ascontiguousarray(injected, np.float32).reshape(-1, 3, 4)
+    # colours summed as launch's numpy code does (same order, same bits), band 0 first
+    lit = np.flatnonzero(cells[:, 0, 0] + cells[:, 1, 0] + cells[:, 2, 0] > 0)
+    if lit.size == 0:
+        return out
+    rows = (lit[:, None] * 3 + np.arange(3)).reshape(-1)  # each lit cell's 3 colours
+    flux = np.empty((q, rows.size), np.float32)  # (q, 3 n): cell-major, colour-minor
+    _unfold_kernel(cells.reshape(-1, 4), rows, np.arange(rows.size), dirs, flux)
+    _, _, m = closure.moments(cells[lit].sum(axis=1))  # (n, 3): the cell's emission direction
+    ijk = np.stack(np.unravel_index(lit, (r, r, r)), axis=1) + 1  # (n, 3) padded cells
+    start = (ijk[:, 0] * p + ijk[:, 1]) * p + ijk[:, 2]
+    if offset_visibility is None:
+        vis = np.zeros((lit.size, 0), np.float32)
+    else:  # (n, 27): a cell's transmittances side by side
+        vis = np.stack([np.asarray(v, np.float32).reshape(-1)[lit] for v in offset_visibility],
+                       axis=1)
+    m = np.ascontiguousarray(m, np.float32)
+    _launch_kernel(flux, m, start, dirs, vis, p, out)
+    return out
 
 
 def _offset_index(off: np.ndarray) -> np.ndarray:
@@ -120,6 +244,8 @@ def launch(injected: np.ndarray, offset_visibility: list | None = None) -> np.nd
 
     ``injected`` (R, R, R, 3, 4). Returns the padded flat layout (q, 3, (R+2)^3) that
     ``advance`` steps and sweep.solve takes."""
+    if jit.enabled():
+        return _launch_compiled(injected, offset_visibility)
     dirs, _, _ = tables()
     q = len(dirs)
     r = injected.shape[0]

@@ -168,18 +168,18 @@ class Rasterizer:
             self._fbos[(width, height)] = fbo
         return fbo
 
-    def render(
+    def read(
         self,
         view: np.ndarray,
         projection: np.ndarray,
         width: int,
         height: int,
         ortho: bool = False,
-        positions_only: bool = False,
-    ) -> Frame:
-        """Rasterise from a world-to-view and projection matrix (OpenGL conventions).
-        ``positions_only`` reads back only the position target (shadow maps: a quarter of the
-        readback); the other fields are then read-only zeros."""
+        targets: tuple[int, ...] = (0, 1, 2, 3),
+    ) -> list[np.ndarray]:
+        """Rasterise and read back the render targets ``targets`` (0 position, 1 normal,
+        2 albedo + receiver flag, 3 reflectance) as float32 (H, W, 4), rows top-first (views
+        of the readback), positions relative to ``self.origin``; coverage is position's w."""
         view = np.asarray(view, np.float64)
         inv_view = np.linalg.inv(view)
         eye = inv_view[:3, 3]
@@ -204,9 +204,25 @@ class Rasterizer:
             self.program["origin"].value = (0.0, 0.0, 0.0)
             self._vao.render()
         out = []
-        for tex in fbo.color_attachments[:1] if positions_only else fbo.color_attachments:
-            a = np.frombuffer(tex.read(), np.float32).reshape(height, width, 4)
-            out.append(a[::-1])  # GL's first row is the bottom
+        for t in targets:
+            a = np.frombuffer(fbo.color_attachments[t].read(), np.float32)
+            out.append(a.reshape(height, width, 4)[::-1])  # GL's first row is the bottom
+        return out
+
+    def render(
+        self,
+        view: np.ndarray,
+        projection: np.ndarray,
+        width: int,
+        height: int,
+        ortho: bool = False,
+        positions_only: bool = False,
+    ) -> Frame:
+        """Rasterise from a world-to-view and projection matrix (OpenGL conventions).
+        ``positions_only`` reads back only the position target (shadow maps: a quarter of the
+        readback); the other fields are then read-only zeros."""
+        out = self.read(view, projection, width, height, ortho,
+                        (0,) if positions_only else (0, 1, 2, 3))
         covered = out[0][..., 3] > 0.5
         pos = out[0][..., :3].astype(np.float64) + self.origin
         pos[~covered] = np.nan

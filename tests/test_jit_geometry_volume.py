@@ -1,0 +1,197 @@
+"""geometry_volume's compiled kernels (jit.py) against its numpy code: the same bits.
+
+Coverage is a count of samples and the kernels repeat the numpy arithmetic operation for
+operation (same edge tolerances, plane rule and sample window), so every output must match
+exactly, not just to within a sample."""
+
+import numpy as np
+import pytest
+
+pytest.importorskip("numba")
+
+from lpv_core import demo, geometry_volume, jit
+from lpv_core.grid import Grid, fit_grid
+from lpv_core.scene import GISettings
+
+pytestmark = pytest.mark.skipif(not jit.enabled(), reason="kernels turned off (LPV_JIT=0)")
+
+
+def _both(fn, *args):
+    """(numpy result, compiled result) of fn(*args)."""
+    with jit.disabled():
+        ref = fn(*args)
+    return ref, fn(*args)
+
+
+def _same(ref, new):
+    ref = ref if isinstance(ref, tuple) else (ref,)
+    new = new if isinstance(new, tuple) else (new,)
+    assert len(ref) == len(new)
+    for a, b in zip(ref, new):
+        assert a.shape == b.shape and a.dtype == b.dtype
+        np.testing.assert_array_equal(a, b)
+
+
+def _check(grid: Grid, triangles: np.ndarray):
+    """Every geometry_volume stage, numpy vs compiled, on ``triangles`` in ``grid``."""
+    spacing = geometry_volume.SURFEL_SPACING * grid.cell_size
+    _same(*_both(geometry_volume._subdivide, triangles, spacing))
+    with jit.disabled():
+        sub, _, normal, area = geometry_volume._subdivide(triangles, spacing)
+    ref, new = _both(geometry_volume.face_coverage, grid, sub)
+    _same(ref, new)
+    _same(*_both(geometry_volume.face_offsets, grid, sub, normal, area))
+    _same(*_both(geometry_volume.occluder_volume, grid, triangles))
+    return ref
+
+
+def _cornell(resolution: int):
+    sc = demo.cornell_box("SPOT", (16, 16), GISettings(grid_resolution=resolution))
+    lo, hi = sc.bounds()
+    return fit_grid(lo, hi, resolution), sc.positions[sc.flag("occluder")]
+
+
+def _random_triangles(rng, r: int, n: int) -> np.ndarray:
+    """Triangles in a grid of cell 1 at the origin: sizes from 1e-3 to 3 R cells, centres
+    reaching past the grid on every side, a quarter degenerate (collinear or a point) and a
+    quarter edge-on or nearly edge-on to a grid axis, some of them flat on a grid plane."""
+    centre = rng.uniform(-0.3 * r, 1.3 * r, (n, 1, 3))
+    size = np.exp(rng.uniform(np.log(1e-3), np.log(3.0 * r), (n, 1, 1)))
+    tri = centre + size * rng.uniform(-0.5, 0.5, (n, 3, 3))
+    kind = rng.integers(0, 8, n)
+    t = rng.uniform(-1.0, 2.0, n)
+    collinear = kind == 0
+    tri[collinear, 2] = tri[collinear, 0] + t[collinear, None] * (tri[collinear, 1]
+                                                                 - tri[collinear, 0])
+    tri[kind == 1] = tri[kind == 1, :1]  # all three corners in one point
+    axis = rng.integers(0, 3, n)
+    for i in np.nonzero(kind == 2)[0]:  # edge-on: flat in one coordinate's *direction*
+        d = tri[i, 1] - tri[i, 0]
+        d[axis[i]] += 1.0
+        tri[i, 2] = tri[i, 0] + rng.uniform(-2, 2) * d
+    for i in np.nonzero(kind == 3)[0]:  # nearly edge-on to axis: a tilt of 1e-10 .. 1e-6
+        tri[i, :, axis[i]] = tri[i, 0, axis[i]] + rng.uniform(-1, 1, 3) * 10 ** rng.uniform(
+            -10, -6)
+        tri[i, :, (axis[i] + 1) % 3] = tri[i, 0, (axis[i] + 1) % 3]
+        tri[i, 1, (axis[i] + 1) % 3] += 1e-9
+    for i in np.nonzero(kind == 4)[0]:  # flat on a cell or half-cell plane
+        tri[i, :, axis[i]] = np.round(tri[i, 0, axis[i]] * 2.0) / 2.0
+    return tri
+
+
+@pytest.mark.parametrize("resolution", [5, 16])
+def test_cornell_box_matches_numpy(resolution):
+    grid, tris = _cornell(resolution)
+    cover = _check(grid, tris)
+    assert cover.max() == 1.0  # (the walls do cover faces)
+
+
+@pytest.mark.parametrize("resolution", [5, 16])
+def test_random_triangles_match_numpy(resolution):
+    rng = np.random.default_rng(7 + resolution)
+    grid = Grid((0.0, 0.0, 0.0), 1.0, resolution)
+    tris = _random_triangles(rng, resolution, 60)
+    # (moved and scaled, so that no coordinate is a round number)
+    moved = Grid((-3.25, 1.5, 1e3), 0.37, resolution)
+    cover = _check(grid, tris)
+    assert 0.0 < cover.mean() < 1.0
+    _check(moved, tris * 0.37 + moved.origin_array)
+
+
+@pytest.mark.parametrize("resolution", [5, 16])
+def test_unsubdivided_triangles_and_slivers_match_numpy(resolution):
+    # face_coverage on triangles as they come (up to 1.5 cells: the numpy path scans the
+    # largest one's window for each), slivers just above and below its edge-on threshold
+    # included, whose tolerance-grown tips reach past their own bounding boxes.
+    rng = np.random.default_rng(resolution)
+    grid = Grid((0.0, 0.0, 0.0), 1.0, resolution)
+    tris = rng.uniform(-1.0, resolution + 1.0, (400, 1, 3)) + rng.uniform(-0.75, 0.75,
+                                                                          (400, 3, 3))
+    for i in range(0, 400, 4):
+        axis = i % 3
+        tris[i, 2] = 0.5 * (tris[i, 0] + tris[i, 1])
+        tris[i, 2, (axis + 1) % 3] += 10.0 ** rng.uniform(-13, -7)
+    _same(*_both(geometry_volume.face_coverage, grid, tris))
+    normal = rng.normal(size=(400, 3))
+    area = rng.uniform(0.0, 1.0, 400)
+    _same(*_both(geometry_volume.face_offsets, grid, tris, normal, area))
+
+
+@pytest.mark.parametrize("resolution", [5, 16])
+@pytest.mark.parametrize("at", [2.5, 2.0])
+def test_axis_aligned_wall_on_a_plane_matches_numpy(resolution, at):
+    # A wall exactly half-way between two face planes (x = 2.5 cells: the tie rule puts it on
+    # the lower one) or on one (x = 2), edges on face boundaries, as two triangles.
+    grid = Grid((0.0, 0.0, 0.0), 1.0, resolution)
+    y0, y1, z0, z1 = 1.0, resolution - 1.0, 0.5, resolution - 2.0
+    wall = np.array([[[at, y0, z0], [at, y1, z0], [at, y1, z1]],
+                     [[at, y0, z0], [at, y1, z1], [at, y0, z1]]])
+    cover = _check(grid, wall)
+    assert cover[0, 2, 1:resolution - 1, 1:resolution - 2].min() == 1.0
+    vis, gaps = geometry_volume.occluder_volume(grid, wall)
+    assert vis.min() == 0.0 and (gaps.max() > 0) == (at == 2.5)
+
+
+def _on_samples(grid: Grid, axis: int, plane: float, su, sv) -> np.ndarray:
+    """World points at sample coordinates (su, sv) (sample j at (j + 0.5) / M cells) on the
+    plane ``plane`` (cells) across ``axis``."""
+    m = geometry_volume.COVERAGE_SAMPLES
+    u, v = [a for a in range(3) if a != axis]
+    rel = np.empty(np.broadcast(su, sv).shape + (3,))
+    rel[..., axis] = plane
+    rel[..., u] = (np.asarray(su) + 0.5) / m
+    rel[..., v] = (np.asarray(sv) + 0.5) / m
+    return grid.origin_array + grid.cell_size * rel
+
+
+@pytest.mark.parametrize("resolution", [5, 16])
+@pytest.mark.parametrize("origin, cell", [((0.0, 0.0, 0.0), 1.0), ((-3.25, 1.5, 7.1), 0.37)])
+def test_edges_through_samples_and_slivers_match_numpy(resolution, origin, cell):
+    # Where the tolerances decide: (1) triangles with corners on sample points, their edges
+    # (diagonals too) running through samples, which rounding puts a hair inside or outside,
+    # or moved off them by about the tolerance;
+    # (2) slivers along a row of samples, as thin as 1e-10 .. 1e-8 of their length (around
+    # the edge-on threshold, 1e-9), whose tolerance-grown tips reach a sample past their
+    # bounding boxes (counted only inside the largest window any triangle needs: see
+    # _coverage_kernel).
+    rng = np.random.default_rng(resolution)
+    grid = Grid(origin, cell, resolution)
+    rm = resolution * geometry_volume.COVERAGE_SAMPLES
+    tris = []
+    for _ in range(300):
+        axis = int(rng.integers(0, 3))
+        plane = rng.integers(0, resolution + 1) + rng.uniform(-0.4, 0.4)
+        base = rng.integers(-2, rm + 2, 2)
+        su, sv = (base[:, None] + rng.integers(-4, 5, (2, 3))).astype(float)
+        if rng.random() < 0.5:  # moved off the samples by about the tolerance
+            su += rng.choice([-1.0, 1.0]) * 10 ** rng.uniform(-10, -8)
+        tris.append(_on_samples(grid, axis, plane, su, sv))
+    for _ in range(300):
+        axis = int(rng.integers(0, 3))
+        plane = rng.integers(0, resolution + 1) + rng.uniform(-0.4, 0.4)
+        length = rng.uniform(0.5, 5.0)
+        thin = length * 10 ** rng.uniform(-10, -8)
+        j, row = rng.uniform(-2, rm + 2), float(rng.integers(-1, rm + 1))
+        tip, far = (j + length, j) if rng.random() < 0.5 else (j, j + length)
+        su = np.array([tip, far, far])
+        sv = np.array([row, row, row + thin])
+        if rng.random() < 0.5:
+            su, sv = sv, su
+        tris.append(_on_samples(grid, axis, plane, su, sv))
+    tris = np.array(tris)
+    _same(*_both(geometry_volume.face_coverage, grid, tris))
+    _check(grid, tris)
+
+
+@pytest.mark.parametrize("samples", [1, 3, 12])
+def test_other_sample_counts_match_numpy(samples):
+    # (12 x 12 samples: more than one 64-bit word of hit bits per face)
+    grid, tris = _cornell(5)
+    with jit.disabled():
+        sub = geometry_volume._subdivide(tris, 0.5 * grid.cell_size)[0]
+    _same(*_both(geometry_volume.face_coverage, grid, sub, samples))
+
+
+def test_empty_matches_numpy():
+    grid = Grid((0.0, 0.0, 0.0), 1.0, 4)
+    _check(grid, np.zeros((0, 3, 3)))
