@@ -17,6 +17,7 @@ from . import (
     areas,
     cascades,
     geometry_volume,
+    heap,
     injection,
     jit,
     lookup,
@@ -87,6 +88,7 @@ class Engine:
     """Computes LPV GI for core Scenes; owns the GL rasteriser of this process."""
 
     def __init__(self, raster=None):
+        heap.retain_freed_memory()  # big arrays reused, not re-faulted, every update (heap.py)
         self._raster = raster
         self._gl = None  # GLBackend on the rasteriser's context, made on first use
         # Incremental updates: propagated grids per light, valid while the scene key holds.
@@ -334,16 +336,15 @@ class Engine:
                                         scene.settings, stats)
         else:
             rsm, sample = self._rsm(light, bounds, scene.settings, stats)
-        digest = rsm_key(rsm)
         entry = self._cache.get(light.name)
-        if cached is not None and entry is not None and entry[3] == digest:
+        if cached is not None and entry is not None and same_vpls(entry[3], rsm.flux):
             stats.skip("injection", f"light '{light.name}'",
                        "materials changed, but none its RSM sees: grids reused")
             return cached[0], cached[1], 0
         totals = run.propagate(rsm.position, rsm.normal, rsm.flux, [d.keep for d in reach])
         if scene.settings.bounces > 1:
             totals = self._more_bounces(scene, run, totals)
-        self._cache[light.name] = (light_key(light), totals, sample, digest)
+        self._cache[light.name] = (light_key(light), totals, sample, rsm.flux)
         return totals, sample, rsm.count
 
     @staticmethod
@@ -567,6 +568,8 @@ class _ChainRun:
                 sel = idx[level[idx] == c]
                 if carry is None and (sel.size == 0 or (reach is not None and not reach[c])):
                     continue  # nothing lands in this cascade and nothing comes in from inside
+                if sel.size == n:  # all of them, in order (one cascade, one group): no copies
+                    sel = slice(None)
                 with Timer(stats, "injection"):
                     injected = _inject(be, g, positions[sel], normals[sel], flux[sel],
                                        self.visibilities[c])
@@ -621,11 +624,13 @@ def reflectance_key(scene: Scene) -> str:
     return _digest(scene.reflectance_per_triangle())
 
 
-def rsm_key(rsm) -> str:
-    """Digest of an RSM's VPL flux: compared only between RSMs of an unchanged light in
-    unchanged geometry (Engine._light: the scene key holds both), whose positions and normals
-    are the same, so equal digests inject the same light (a third of the bytes to hash)."""
-    return _digest(rsm.flux)
+def same_vpls(flux, other) -> bool:
+    """Whether two RSMs of an unchanged light in unchanged geometry inject the same light
+    (Engine._light: the scene key holds both, so their positions and normals are the same):
+    equal VPL flux arrays. The cache keeps the last RSM's flux array itself (it is made anew
+    each update, never written after) instead of a digest: hashing it cost 1-2 ms of every
+    update, the comparison is needed only after a material edit."""
+    return flux is not None and flux.shape == other.shape and bool(np.array_equal(flux, other))
 
 
 def content_key(scene: Scene, geo: str | None = None) -> str:
