@@ -21,7 +21,7 @@ UNSUPPORTED = frozenset({"CURVES", "POINTCLOUD", "VOLUME", "GPENCIL", "GREASEPEN
 # Scene.lpv properties copied into GISettings (see properties.py).
 SCENE_SETTINGS = (
     "grid_resolution", "cascades", "cascades_auto", "iterations", "rsm_resolution",
-    "occlusion", "bounces", "backend", "intensity",
+    "occlusion", "bounces", "backend", "intensity", "antialias",
 )
 DEFAULT_ALBEDO = (0.8, 0.8, 0.8)
 # Large images are subsampled to about this many pixels for their mean colour.

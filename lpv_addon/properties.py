@@ -120,6 +120,10 @@ class LPVSceneSettings(bpy.types.PropertyGroup):
                                 max=2048,
                                 update=_setting_changed,
                                 description="Reflective shadow map size per light view")
+    antialias: IntProperty(
+        name="Anti-Aliasing", default=_CORE.antialias, min=1, max=4, update=_changed,
+        description=("Samples per pixel side of a rendered frame (batch and compare renders): "
+                     "each pass averages the pixel's area, as Cycles' pixel filter does"))
     occlusion: BoolProperty(name="Occlusion", default=_CORE.occlusion, update=_changed,
                             description="Block propagation with the geometry volume")
     bounces: IntProperty(name="Bounces", default=_CORE.bounces, min=1, max=8, update=_changed,

@@ -91,7 +91,8 @@ class LPV_PT_quality(_Sidebar, bpy.types.Panel):
         layout.use_property_split = True
         layout.use_property_decorate = False
         for name in ("grid_resolution", "cascades", "cascades_auto", "iterations", "rsm_resolution",
-                     "occlusion", "bounces", "backend", "refresh_interval", "fade_time"):
+                     "occlusion", "bounces", "backend", "antialias", "refresh_interval",
+                     "fade_time"):
             layout.prop(props, name)
 
 

@@ -37,21 +37,59 @@ def toward_viewer(camera, positions: np.ndarray, distance: float) -> np.ndarray:
     return positions + toward / np.maximum(length, 1e-30) * distance
 
 
+MAX_ANTIALIAS = 8
+
+
 def render(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats | None = None) -> dict:
-    """Render the scene's camera view; returns {pass name: (H, W, C) float32}, rows top-first."""
+    """Render the scene's camera view; returns {pass name: (H, W, C) float32}, rows top-first.
+
+    Each pass is the mean over settings.antialias^2 sub-pixel samples on a regular grid in the
+    pixel: Cycles' one-pixel box filter, so that an edge pixel holds the footprint average of
+    both surfaces (and the sky's zero), as the reference does. One sample at the centre
+    aliases: measured at 96x96, indirect relative RMSE against Cycles city 0.765 / sunlit room
+    0.422 with one sample, 0.637 / 0.391 with 2^2 and 0.618 / 0.380 with 4^2."""
     stats = stats or lpv.stats
     if scene.camera is None:
         raise ValueError("the scene has no camera to render from")
     w, h = scene.camera.resolution
     if w <= 0 or h <= 0:
         raise ValueError(f"render resolution {w}x{h} is not positive")
+    s = getattr(scene.settings, "antialias", 1)
+    if not isinstance(s, (int, np.integer)) or not 1 <= s <= MAX_ANTIALIAS:
+        raise ValueError(f"antialias must be a whole number of samples per pixel side from 1 "
+                         f"to {MAX_ANTIALIAS}, not {s!r}")
+    s = int(s)
+    if s == 1:
+        return _render_samples(engine, scene, lpv, stats, scene.camera.projection)
+    total: dict = {}
+    for i in range(s):
+        for j in range(s):
+            # the projection moved by a sub-pixel offset: sample (i, j) of a regular s x s grid
+            # in every pixel, with the image's memory (a w s x h s image would need s^2 times)
+            dx, dy = ((i + 0.5) / s - 0.5) * 2.0 / w, ((j + 0.5) / s - 0.5) * 2.0 / h
+            proj = np.array(scene.camera.projection, np.float64)
+            proj[0] += dx * proj[3]
+            proj[1] += dy * proj[3]
+            for name, arr in _render_samples(engine, scene, lpv, stats, proj).items():
+                if name in total:
+                    total[name] += arr
+                else:
+                    total[name] = arr.astype(np.float64)
+    return {name: (arr / (s * s)).astype(np.float32) for name, arr in total.items()}
+
+
+def _render_samples(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats,
+                    projection: np.ndarray) -> dict:
+    """The passes of one sample per pixel through the camera ``projection`` (render's
+    sub-pixel offsets move it)."""
+    w, h = scene.camera.resolution
     color = np.zeros((h, w, 3), np.float32)
     diff_dir = np.zeros((h, w, 3), np.float32)
     diff_ind = np.zeros((h, w, 3), np.float32)
     if scene.triangle_count:
         lo, hi = engine.upload(scene, stats)  # the LPV box: shadow maps cover it, not outliers
         with Timer(stats, "gbuffer"):
-            frame = engine.raster.render(scene.camera.view, scene.camera.projection, w, h)
+            frame = engine.raster.render(scene.camera.view, projection, w, h)
         mask = frame.covered
         pos = frame.position[mask]
         nrm = frame.normal[mask].astype(np.float64)

@@ -633,6 +633,11 @@ def same_vpls(flux, other) -> bool:
     return flux is not None and flux.shape == other.shape and bool(np.array_equal(flux, other))
 
 
+# Settings the propagated grids do not depend on: the global intensity only re-combines; the
+# others are read by the render (deferred.py) alone.
+RENDER_ONLY = frozenset({"intensity", "antialias", "shadow_resolution"})
+
+
 def content_key(scene: Scene, geo: str | None = None) -> str:
     """Digest of what every light's propagated grids depend on besides their placement:
     geometry and flags, normals, areas, the settings (not the global intensity, which only
@@ -640,7 +645,7 @@ def content_key(scene: Scene, geo: str | None = None) -> str:
     surface; one bounce's reflectance is tracked per light through its RSM, Engine._light)."""
     areas_repr = repr([(a.type, np.asarray(a.matrix).tobytes(), a.falloff, a.intensity)
                        for a in scene.areas])
-    settings = {k: v for k, v in scene.settings.as_dict().items() if k != "intensity"}
+    settings = {k: v for k, v in scene.settings.as_dict().items() if k not in RENDER_ONLY}
     bounce = reflectance_key(scene) if scene.settings.bounces > 1 else ""
     return _digest(geo or geometry_key(scene), scene.normals, bounce, areas_repr,
                    repr(sorted(settings.items())))

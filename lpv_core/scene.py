@@ -116,6 +116,9 @@ class GISettings:
     backend: str = "auto"  # "numpy", "gl" (moderngl compute) or "auto" (fastest per stage)
     intensity: float = 1.0  # global GI multiplier (keyframable in the add-on)
     shadow_resolution: int = 1024
+    # Sub-pixel samples per pixel side of a render (deferred.render; Cycles' 1-pixel box
+    # filter): 1 = one sample at the centre. Output only: the LPV does not depend on it.
+    antialias: int = 2
 
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)
