@@ -69,7 +69,9 @@ from lpv_core.scene import GISettings
 FAST = {k: v for k, v in (("direction_groups", 1),) if k in GISettings.__dataclass_fields__}
 
 def expected(**overrides):
-    passes, _ = live.render_passes(scene, (W, H), overrides={**FAST, **overrides})
+    # one sample at each pixel centre, as the overlay draws (renders average antialias^2)
+    passes, _ = live.render_passes(scene, (W, H),
+                                   overrides={**FAST, "antialias": 1, **overrides})
     return passes["Diffuse Indirect"] * passes["Diffuse Color"]
 
 def refresh():
