@@ -70,7 +70,16 @@ def render(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats | None = N
             proj = np.array(scene.camera.projection, np.float64)
             proj[0] += dx * proj[3]
             proj[1] += dy * proj[3]
-            for name, arr in _render_samples(engine, scene, lpv, stats, proj).items():
+            # later samples' skips (the shadow maps the first sample rendered, reused) are
+            # not this render's decisions: only their times and drops are kept
+            sub = stats if i == j == 0 else Stats()
+            samples = _render_samples(engine, scene, lpv, sub, proj)
+            if sub is not stats:
+                for k, v in sub.ms.items():
+                    stats.ms[k] = stats.ms.get(k, 0.0) + v
+                for k, v in sub.dropped.items():
+                    stats.dropped[k] = stats.dropped.get(k, 0) + v
+            for name, arr in samples.items():
                 if name in total:
                     total[name] += arr
                 else:

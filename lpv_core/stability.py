@@ -186,8 +186,10 @@ class Runner:
     def settings(self, **kw) -> GISettings:
         known = {f.name for f in dataclasses.fields(GISettings)}
         # The numpy backend: its propagation steps are the ones record_steps() can see.
+        # One sample per pixel: the suite checks the LPV's invariance, not the rasteriser's
+        # coverage ties (a sub-pixel sample exactly on a scaled edge can fall either way).
         kw = {"grid_resolution": self.p["grid"], "rsm_resolution": self.p["rsm"],
-              "shadow_resolution": self.p["shadow"], "backend": "numpy",
+              "shadow_resolution": self.p["shadow"], "backend": "numpy", "antialias": 1,
               **self.p["overrides"], **kw}
         return GISettings().updated(**{k: v for k, v in kw.items() if k in known})
 

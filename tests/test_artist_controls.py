@@ -22,9 +22,10 @@ def _settings(**kw) -> GISettings:
     return GISettings(**{k: v for k, v in kw.items() if k in known})
 
 
-SETTINGS = _settings(grid_resolution=16, rsm_resolution=64, shadow_resolution=256,
+# antialias=1: the tests compare passes pixel by pixel with masks of one raster.render
+SETTINGS = _settings(grid_resolution=16, rsm_resolution=64, shadow_resolution=256, antialias=1,
                      angular="sh", direction_groups=1)
-DEFAULTS = _settings(grid_resolution=16, rsm_resolution=64, shadow_resolution=256)
+DEFAULTS = _settings(grid_resolution=16, rsm_resolution=64, shadow_resolution=256, antialias=1)
 RES = (48, 48)
 
 
