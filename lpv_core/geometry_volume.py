@@ -298,13 +298,18 @@ def occluder_visibility(grid: Grid, triangles: np.ndarray) -> np.ndarray:
 # operation for operation, one sub-triangle at a time, so the results are the same bits.
 
 def _coverage_compiled(grid: Grid, tri: np.ndarray, m: int, out: np.ndarray) -> np.ndarray:
-    """face_coverage through _coverage_kernel, on the corners in cell units computed once
-    (_cell_units). (The kernel releases the GIL, but the three axes on ordinates' pool
-    measured no faster on the 2 shared cores: 13.0 vs 12.6 ms at R = 32, two kernels on two
-    threads 9.2 vs 8.2 ms one after the other.)"""
+    """face_coverage by the compiled kernels, on the corners in cell units computed once
+    (_cell_units): the sample windows (_coverage_windows), then each axis's planes
+    (_cover_axis) on ordinates' pool threads."""
+    from .ordinates import _pool
+
     rel = np.empty(tri.shape)
     _cell_units(tri, grid.origin_array, float(grid.cell_size), rel)
-    _coverage_kernel(rel, grid.resolution, m, out)
+    r = grid.resolution
+    width, height = _coverage_windows(rel, r, m)
+    for _ in _pool().map(lambda a: _cover_axis(rel, r, m, a, width[a], height[a], out[a]),
+                         range(3)):
+        pass
     return out
 
 
@@ -376,14 +381,15 @@ def _projected(rel, n, r, m, axis, u, v):
 
 
 @jit.kernel
-def _coverage_kernel(rel, r, m, out):
-    """face_coverage (3, R + 1, R, R) of sub-triangles rel (N, 3, 3) in cell units: the
-    samples each kept sub-triangle's projection covers (same edge functions and tolerances)
-    marked in a bit per sample (the union), and counted per face.
+def _coverage_windows(rel, r, m):
+    """Per axis the largest sample window (width, height) any sub-triangle rel (N, 3, 3) in
+    cell units needs. face_coverage's planes across each axis (_cover_axis) mark the samples
+    each kept sub-triangle's projection covers (same edge functions and tolerances) in a bit
+    per sample (the union), and count them per face.
 
-    Numpy scans every sub-triangle over the largest sample window (width x height) any of them
-    needs, from its own first sample; so does this (a first pass finds that window), so that a
-    sample just past a sliver's tip, inside all three edges' tolerance, counts here too."""
+    Numpy scans every sub-triangle over the largest sample window any of them needs, from its
+    own first sample; so does _cover_axis (this pass finds that window), so that a sample just
+    past a sliver's tip, inside all three edges' tolerance, counts there too."""
     width = np.zeros(3)
     height = np.zeros(3)
     for n in range(rel.shape[0]):
@@ -396,13 +402,12 @@ def _coverage_kernel(rel, r, m, out):
                                   - math.ceil(min(u0, u1, u2) - 1e-9))
                 height[axis] = max(height[axis], math.floor(max(v0, v1, v2) + 1e-9)
                                    - math.ceil(min(v0, v1, v2) - 1e-9))
-    for axis in range(3):
-        _cover_axis(rel, r, m, axis, width[axis], height[axis], out[axis])
+    return width, height
 
 
 @jit.kernel
 def _cover_axis(rel, r, m, axis, width, height, out):
-    """_coverage_kernel's planes across ``axis`` into out (R + 1, R, R)."""
+    """face_coverage's planes across ``axis`` into out (R + 1, R, R)."""
     u = 1 if axis == 0 else 0
     v = 1 if axis == 2 else 2
     rm = r * m

@@ -140,18 +140,19 @@ def _unfold_kernel(cells, rows, dest, dirs, out):  # pragma: no cover - compiled
 
 
 @jit.kernel
-def _launch_kernel(flux, m, start, dirs, vis, p, out):  # pragma: no cover - compiled
+def _launch_kernel(flux, m, start, dirs, vis, p, out, j0, j1):  # pragma: no cover - compiled
     """``launch``'s scatter (compiled): lit cell i's flux
     flux[j, 3 i + colour] moves along j, shifted sideways by its emission direction m[i], split
     trilinearly over the 8 cells around, each share times vis[i, offset] (when vis has
     columns), into out[j, colour, start[i] + shift] (padded flat layout). One loop over (cell,
-    corner, colour) in place of the numpy code's dense octant step plus np.add.at; float32
+    corner, colour) for directions j0 <= j < j1 in place of the numpy code's dense octant step
+    plus np.add.at; float32
     weights formed in the numpy code's order. Scalars only in the loop (a small work array
     would be re-read after every store to ``out``: 1.3x slower)."""
     has_vis = vis.shape[1] > 0
     half, eps = np.float32(LAUNCH_CELLS), np.float32(1e-6)
     zero, one = np.float32(0.0), np.float32(1.0)
-    for j in range(dirs.shape[0]):  # direction outermost: out[j] (3 (R+2)^3) stays in cache
+    for j in range(j0, j1):  # direction outermost: out[j] (3 (R+2)^3) stays in cache
         dx, dy, dz = dirs[j, 0], dirs[j, 1], dirs[j, 2]
         for i in range(m.shape[0]):
             f0, f1, f2 = flux[j, 3 * i], flux[j, 3 * i + 1], flux[j, 3 * i + 2]
@@ -186,8 +187,9 @@ def _launch_kernel(flux, m, start, dirs, vis, p, out):  # pragma: no cover - com
 
 def _launch_compiled(injected: np.ndarray, offset_visibility: list | None) -> np.ndarray:
     """``launch`` by the compiled kernels: the lit cells' unfold (_unfold_kernel, those cells
-    only) and one scatter loop (_launch_kernel). Single-threaded: dealing the directions over
-    ``_pool`` measured no faster on this 2-core machine (16^3: 1.9 -> 2.5 ms, 32^3 the same)."""
+    only) and one scatter loop (_launch_kernel), each in two halves on ``_pool``'s threads
+    (Cornell box update, one process A/B: propagation 13.8 -> 12.3 ms; measured no faster
+    before heap.py, when page faults dominated)."""
     dirs, _, _ = tables()
     q = len(dirs)
     r = injected.shape[0]
@@ -200,7 +202,11 @@ def _launch_compiled(injected: np.ndarray, offset_visibility: list | None) -> np
         return out
     rows = (lit[:, None] * 3 + np.arange(3)).reshape(-1)  # each lit cell's 3 colours
     flux = np.empty((q, rows.size), np.float32)  # (q, 3 n): cell-major, colour-minor
-    _unfold_kernel(cells.reshape(-1, 4), rows, np.arange(rows.size), dirs, flux)
+    h = rows.size // 2  # two halves of the rows, on two threads (disjoint columns of flux)
+    dest = np.arange(rows.size)
+    for _ in _pool().map(lambda sl: _unfold_kernel(cells.reshape(-1, 4), rows[sl], dest[sl],
+                                                   dirs, flux), (slice(0, h), slice(h, None))):
+        pass
     _, _, m = closure.moments(cells[lit].sum(axis=1))  # (n, 3): the cell's emission direction
     ijk = np.stack(np.unravel_index(lit, (r, r, r)), axis=1) + 1  # (n, 3) padded cells
     start = (ijk[:, 0] * p + ijk[:, 1]) * p + ijk[:, 2]
@@ -210,7 +216,10 @@ def _launch_compiled(injected: np.ndarray, offset_visibility: list | None) -> np
         vis = np.stack([np.asarray(v, np.float32).reshape(-1)[lit] for v in offset_visibility],
                        axis=1)
     m = np.ascontiguousarray(m, np.float32)
-    _launch_kernel(flux, m, start, dirs, vis, p, out)
+    halves = ((0, q // 2), (q // 2, q))  # disjoint directions: no shared writes
+    for _ in _pool().map(lambda js: _launch_kernel(flux, m, start, dirs, vis, p, out, *js),
+                         halves):
+        pass
     return out
 
 

@@ -153,7 +153,7 @@ def test_edges_through_samples_and_slivers_match_numpy(resolution, origin, cell)
     # (2) slivers along a row of samples, as thin as 1e-10 .. 1e-8 of their length (around
     # the edge-on threshold, 1e-9), whose tolerance-grown tips reach a sample past their
     # bounding boxes (counted only inside the largest window any triangle needs: see
-    # _coverage_kernel).
+    # _cover_axis).
     rng = np.random.default_rng(resolution)
     grid = Grid(origin, cell, resolution)
     rm = resolution * geometry_volume.COVERAGE_SAMPLES
