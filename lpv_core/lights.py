@@ -144,5 +144,5 @@ def texel_rays(view: LightView, rows: np.ndarray, cols: np.ndarray, width: int,
     right, up, fwd = inv[:3, 0], inv[:3, 1], -inv[:3, 2]
     r2 = 1.0 + u * u + v * v
     dirs = (u[:, None] * right + v[:, None] * up + fwd) / np.sqrt(r2)[:, None]
-    solid = (2.0 * t / width) * (2.0 * t / height) / r2 ** 1.5
+    solid = (2.0 * t / width) * (2.0 * t / height) / (r2 * np.sqrt(r2))
     return dirs, solid

@@ -147,7 +147,7 @@ def _vpl_kernel(p4, n4, r4, origin, ortho, tan_half, half_extent, right, up, fwd
                 dx = (u * right[0] + v * up[0] + fwd[0]) / root
                 dy = (u * right[1] + v * up[1] + fwd[1]) / root
                 dz = (u * right[2] + v * up[2] + fwd[2]) / root
-                solid = (2.0 * tan_half / size) * (2.0 * tan_half / size) / r2 ** 1.5
+                solid = (2.0 * tan_half / size) * (2.0 * tan_half / size) / (r2 * root)
                 if kind == 0:
                     strength = power / (4.0 * np.pi)
                 else:
