@@ -117,6 +117,7 @@ KNOWN_VALUES = {
     "shadow_resolution": (512, 1024, 2048),
     "backend": ("numpy", "gl"),
     "direction_groups": (1, 6),
+    "antialias": (1, 2, 4),  # samples per pixel side of the render (deferred.render)
 }
 # Not quality settings: left at their defaults.
 NOT_SWEPT = frozenset({"intensity"})
