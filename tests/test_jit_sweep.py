@@ -9,6 +9,8 @@ import pytest
 
 pytest.importorskip("numba")
 
+from test_sweep import _case  # tests/ is on sys.path under pytest
+
 from lpv_core import jit, propagation, sweep
 
 pytestmark = pytest.mark.skipif(not jit.enabled(), reason="LPV_JIT=0: the kernels are off")
@@ -82,17 +84,7 @@ def test_the_compiled_sweep_follows_the_visibility_list_it_is_given():
 def test_propagate_with_the_launch_is_the_same_compiled_and_in_numpy():
     """propagate(angular="dom", sweep=True, launch=True) on an injected grid with an opaque
     wall: grid and outflow agree between the kernel and the numpy sweep."""
-    r = 8
-    rng = np.random.default_rng(11)
-    inj = np.zeros((r, r, r, 3, 4), np.float32)
-    for _ in range(20):
-        c = rng.integers(0, r, 3)
-        n = rng.normal(size=3)
-        n /= np.linalg.norm(n)
-        lobe = np.concatenate([[1.0], 0.6 * n[[1, 2, 0]]]) * rng.uniform(0.5, 2.0)
-        inj[c[0], c[1], c[2]] += lobe[None] * np.array([1.0, 0.5, 0.2])[:, None]
-    vis = rng.uniform(0.3, 1.0, (6, r, r, r)).astype(np.float32)
-    vis[:, r // 2] = 0.0
+    inj, vis = _case(8, seed=11)  # test_sweep's random lit cells and opaque wall
     kw = {"visibility": vis, "angular": "dom", "sweep": True, "launch": True,
           "occlude_first_step": True, "capture_outflow": True}
     got = propagation.propagate(inj, 0, **kw)
