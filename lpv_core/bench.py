@@ -28,7 +28,7 @@ import time
 
 import numpy as np
 
-from . import deferred, demo, engine
+from . import deferred, demo, engine, jit
 from .scene import GISettings
 
 
@@ -61,6 +61,7 @@ def run(repeat: int, resolution: tuple[int, int], settings: GISettings) -> dict:
         "angular": settings.angular,
         # what "auto" chose per stage on this run (measured once per process)
         "backend_used": result.stats.info.get("backend") if result else None,
+        "cpu_kernels": jit.name(),  # numba-compiled CPU stages, or "numpy" (jit.py)
         "median_ms": medians,
         "full_update_ms": medians.get("lpv_update", 0.0),
         "iterations": result.stats.info.get("iterations") if result else None,
