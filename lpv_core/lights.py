@@ -121,14 +121,6 @@ def _any_up(d) -> np.ndarray:
     return np.array([0.0, 0.0, 1.0]) if abs(d[2]) < 0.9 else np.array([0.0, 1.0, 0.0])
 
 
-def texel_directions(view: LightView, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
-    """World directions through texel centres (H, W, 3), rows top-first, and solid angles (H, W):
-    texel_rays of every texel."""
-    rows, cols = np.indices((height, width)).reshape(2, -1)
-    dirs, solid = texel_rays(view, rows, cols, width, height)
-    return dirs.reshape(height, width, 3), solid.reshape(height, width)
-
-
 def texel_rays(view: LightView, rows: np.ndarray, cols: np.ndarray, width: int,
                height: int) -> tuple[np.ndarray, np.ndarray]:
     """World directions (N, 3) through the centres of texels (rows top-first, columns) of a

@@ -83,7 +83,7 @@ def unfold(values: np.ndarray) -> np.ndarray:
     out = np.zeros((len(dirs), cells.shape[0]), np.float32)
     lit = np.flatnonzero(cells[:, 0] > 0)
     if lit.size and jit.enabled():
-        _unfold_kernel(cells, lit, lit, dirs, out)
+        _unfold_compiled(cells, lit, lit, dirs, out)
     elif lit.size:
         held, mean_cos, d = closure.moments(cells[lit])
         w = closure.emission_density(mean_cos[None, :], dirs @ d.T).astype(np.float32)
@@ -139,6 +139,15 @@ def _unfold_kernel(cells, rows, dest, dirs, out):  # pragma: no cover - compiled
             out[j, col] = w[j] * scale
 
 
+def _unfold_compiled(cells, rows, dest, dirs, out) -> None:
+    """_unfold_kernel over ``rows`` in two halves on ``_pool``'s threads (each writes its own
+    columns ``dest`` of ``out``): what unfold and launch both run."""
+    h = rows.size // 2
+    for _ in _pool().map(lambda sl: _unfold_kernel(cells, rows[sl], dest[sl], dirs, out),
+                         (slice(0, h), slice(h, None))):
+        pass
+
+
 @jit.kernel
 def _launch_kernel(flux, m, start, dirs, vis, p, out, j0, j1):  # pragma: no cover - compiled
     """``launch``'s scatter (compiled): lit cell i's flux
@@ -146,8 +155,7 @@ def _launch_kernel(flux, m, start, dirs, vis, p, out, j0, j1):  # pragma: no cov
     trilinearly over the 8 cells around, each share times vis[i, offset] (when vis has
     columns), into out[j, colour, start[i] + shift] (padded flat layout). One loop over (cell,
     corner, colour) for directions j0 <= j < j1 in place of the numpy code's dense octant step
-    plus np.add.at; float32
-    weights formed in the numpy code's order. Scalars only in the loop (a small work array
+    plus np.add.at; float32 weights formed in the numpy code's order. Scalars only in the loop (a small work array
     would be re-read after every store to ``out``: 1.3x slower)."""
     has_vis = vis.shape[1] > 0
     half, eps = np.float32(LAUNCH_CELLS), np.float32(1e-6)
@@ -202,11 +210,7 @@ def _launch_compiled(injected: np.ndarray, offset_visibility: list | None) -> np
         return out
     rows = (lit[:, None] * 3 + np.arange(3)).reshape(-1)  # each lit cell's 3 colours
     flux = np.empty((q, rows.size), np.float32)  # (q, 3 n): cell-major, colour-minor
-    h = rows.size // 2  # two halves of the rows, on two threads (disjoint columns of flux)
-    dest = np.arange(rows.size)
-    for _ in _pool().map(lambda sl: _unfold_kernel(cells.reshape(-1, 4), rows[sl], dest[sl],
-                                                   dirs, flux), (slice(0, h), slice(h, None))):
-        pass
+    _unfold_compiled(cells.reshape(-1, 4), rows, np.arange(rows.size), dirs, flux)
     _, _, m = closure.moments(cells[lit].sum(axis=1))  # (n, 3): the cell's emission direction
     ijk = np.stack(np.unravel_index(lit, (r, r, r)), axis=1) + 1  # (n, 3) padded cells
     start = (ijk[:, 0] * p + ijk[:, 1]) * p + ijk[:, 2]
