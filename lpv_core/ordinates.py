@@ -92,6 +92,31 @@ def unfold(values: np.ndarray) -> np.ndarray:
     return out.reshape(len(dirs), 3, *shape)
 
 
+def unfold_sparse(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``pad(unfold(values))`` kept sparse: (index, flux) with flux (q, n) the unfolded light of
+    the n (cell, colour) pairs holding any, at ``index`` (n,) into the padded flat layout
+    flattened per direction (3 (R+2)^3); everything else is zero. For light handed on from a
+    finer cascade, which fills few cells: adding it to a dense grid costs O(n), not a pad and
+    unfold of the whole grid (32^3: 18 ms)."""
+    dirs, _, _ = tables()
+    r = values.shape[0]
+    p = r + 2
+    cells = np.ascontiguousarray(values, np.float32).reshape(-1, 4)  # (cell, colour) rows
+    rows = np.flatnonzero(cells[:, 0] > 0)
+    cell, colour = np.divmod(rows, 3)
+    i, j, k = np.unravel_index(cell, (r, r, r))
+    index = colour * p**3 + ((i + 1) * p + j + 1) * p + k + 1
+    flux = np.zeros((len(dirs), rows.size), np.float32)
+    if rows.size and jit.enabled():
+        _unfold_compiled(cells, rows, np.arange(rows.size), dirs, flux)
+    elif rows.size:
+        held, mean_cos, d = closure.moments(cells[rows])
+        w = closure.emission_density(mean_cos[None, :], dirs @ d.T).astype(np.float32)
+        w = np.where(w.sum(axis=0) > 0, w, np.float32(1.0))
+        flux[:] = w * (held / w.sum(axis=0)).astype(np.float32)[None, :]
+    return index, flux
+
+
 @jit.kernel
 def _unfold_kernel(cells, rows, dest, dirs, out):  # pragma: no cover - compiled
     """``unfold`` row by row (compiled): out[:, dest[t]] = the flux per direction of the moments
@@ -150,47 +175,54 @@ def _unfold_compiled(cells, rows, dest, dirs, out) -> None:
 
 @jit.kernel
 def _launch_kernel(flux, m, start, dirs, vis, p, out, j0, j1):  # pragma: no cover - compiled
-    """``launch``'s scatter (compiled): lit cell i's flux
+    """``launch``'s scatter (compiled) for directions j0 <= j < j1 (``_launch_direction``),
+    direction outermost: out[j] (3 (R+2)^3) stays in cache."""
+    for j in range(j0, j1):
+        _launch_direction(flux, m, start, dirs, vis, p, out, j)
+
+
+@jit.kernel
+def _launch_direction(flux, m, start, dirs, vis, p, out, j):  # pragma: no cover - compiled
+    """``launch``'s scatter of direction j (compiled): lit cell i's flux
     flux[j, 3 i + colour] moves along j, shifted sideways by its emission direction m[i], split
     trilinearly over the 8 cells around, each share times vis[i, offset] (when vis has
     columns), into out[j, colour, start[i] + shift] (padded flat layout). One loop over (cell,
-    corner, colour) for directions j0 <= j < j1 in place of the numpy code's dense octant step
-    plus np.add.at; float32 weights formed in the numpy code's order. Scalars only in the loop (a small work array
+    corner, colour) in place of the numpy code's dense octant step plus np.add.at; float32
+    weights formed in the numpy code's order. Scalars only in the loop (a small work array
     would be re-read after every store to ``out``: 1.3x slower)."""
     has_vis = vis.shape[1] > 0
     half, eps = np.float32(LAUNCH_CELLS), np.float32(1e-6)
     zero, one = np.float32(0.0), np.float32(1.0)
-    for j in range(j0, j1):  # direction outermost: out[j] (3 (R+2)^3) stays in cache
-        dx, dy, dz = dirs[j, 0], dirs[j, 1], dirs[j, 2]
-        for i in range(m.shape[0]):
-            f0, f1, f2 = flux[j, 3 * i], flux[j, 3 * i + 1], flux[j, 3 * i + 2]
-            if f0 == zero and f1 == zero and f2 == zero:
-                continue  # nothing emitted this way (behind the surface): it would add zeros
-            mx, my, mz = m[i, 0], m[i, 1], m[i, 2]
-            cos = dx * mx + dy * my + dz * mz
-            sx, sy, sz = dx - cos * mx, dy - cos * my, dz - cos * mz
-            sin = np.sqrt(sx * sx + sy * sy + sz * sz)
-            scale = half / max(max(cos, sin), eps) if cos > zero else zero
-            mvx = min(max(dx + scale * sx, -one), one)
-            mvy = min(max(dy + scale * sy, -one), one)
-            mvz = min(max(dz + scale * sz, -one), one)
-            bx, by, bz = -1 if mvx < zero else 0, -1 if mvy < zero else 0, -1 if mvz < zero else 0
-            fx = mvx + one if mvx < zero else mvx  # move - base: the corners are base + {0, 1}
-            fy = mvy + one if mvy < zero else mvy
-            fz = mvz + one if mvz < zero else mvz
-            corner = start[i] + (bx * p + by) * p + bz
-            for cx in range(2):
-                wx = fx if cx else one - fx
-                for cy in range(2):
-                    wxy = wx * (fy if cy else one - fy)
-                    for cz in range(2):
-                        w = wxy * (fz if cz else one - fz)
-                        if has_vis:
-                            w = w * vis[i, ((bx + cx + 1) * 3 + by + cy + 1) * 3 + bz + cz + 1]
-                        cell = corner + (cx * p + cy) * p + cz
-                        out[j, 0, cell] += w * f0
-                        out[j, 1, cell] += w * f1
-                        out[j, 2, cell] += w * f2
+    dx, dy, dz = dirs[j, 0], dirs[j, 1], dirs[j, 2]
+    for i in range(m.shape[0]):
+        f0, f1, f2 = flux[j, 3 * i], flux[j, 3 * i + 1], flux[j, 3 * i + 2]
+        if f0 == zero and f1 == zero and f2 == zero:
+            continue  # nothing emitted this way (behind the surface): it would add zeros
+        mx, my, mz = m[i, 0], m[i, 1], m[i, 2]
+        cos = dx * mx + dy * my + dz * mz
+        sx, sy, sz = dx - cos * mx, dy - cos * my, dz - cos * mz
+        sin = np.sqrt(sx * sx + sy * sy + sz * sz)
+        scale = half / max(max(cos, sin), eps) if cos > zero else zero
+        mvx = min(max(dx + scale * sx, -one), one)
+        mvy = min(max(dy + scale * sy, -one), one)
+        mvz = min(max(dz + scale * sz, -one), one)
+        bx, by, bz = -1 if mvx < zero else 0, -1 if mvy < zero else 0, -1 if mvz < zero else 0
+        fx = mvx + one if mvx < zero else mvx  # move - base: the corners are base + {0, 1}
+        fy = mvy + one if mvy < zero else mvy
+        fz = mvz + one if mvz < zero else mvz
+        corner = start[i] + (bx * p + by) * p + bz
+        for cx in range(2):
+            wx = fx if cx else one - fx
+            for cy in range(2):
+                wxy = wx * (fy if cy else one - fy)
+                for cz in range(2):
+                    w = wxy * (fz if cz else one - fz)
+                    if has_vis:
+                        w = w * vis[i, ((bx + cx + 1) * 3 + by + cy + 1) * 3 + bz + cz + 1]
+                    cell = corner + (cx * p + cy) * p + cz
+                    out[j, 0, cell] += w * f0
+                    out[j, 1, cell] += w * f1
+                    out[j, 2, cell] += w * f2
 
 
 def _launch_compiled(injected: np.ndarray, offset_visibility: list | None) -> np.ndarray:
@@ -200,14 +232,26 @@ def _launch_compiled(injected: np.ndarray, offset_visibility: list | None) -> np
     before heap.py, when page faults dominated)."""
     dirs, _, _ = tables()
     q = len(dirs)
+    p = injected.shape[0] + 2
+    out = np.zeros((q, 3, p**3), np.float32)
+    inputs = launch_inputs(injected, offset_visibility)
+    halves = ((0, q // 2), (q // 2, q))  # disjoint directions: no shared writes
+    for _ in _pool().map(lambda js: _launch_kernel(*inputs, p, out, *js), halves):
+        pass
+    return out
+
+
+def launch_inputs(injected: np.ndarray, offset_visibility: list | None) -> tuple:
+    """What ``_launch_direction`` reads: (flux (q, 3 n) of the n lit cells, cell-major and
+    colour-minor, their emission directions m (n, 3), padded flat cells (n,), directions
+    (q, 3), transmittances (n, 27) or (n, 0)); n = 0 when nothing is lit."""
+    dirs, _, _ = tables()
+    q = len(dirs)
     r = injected.shape[0]
     p = r + 2
-    out = np.zeros((q, 3, p**3), np.float32)
     cells = np.ascontiguousarray(injected, np.float32).reshape(-1, 3, 4)
     # colours summed as launch's numpy code does (same order, same bits), band 0 first
     lit = np.flatnonzero(cells[:, 0, 0] + cells[:, 1, 0] + cells[:, 2, 0] > 0)
-    if lit.size == 0:
-        return out
     rows = (lit[:, None] * 3 + np.arange(3)).reshape(-1)  # each lit cell's 3 colours
     flux = np.empty((q, rows.size), np.float32)  # (q, 3 n): cell-major, colour-minor
     _unfold_compiled(cells.reshape(-1, 4), rows, np.arange(rows.size), dirs, flux)
@@ -220,11 +264,7 @@ def _launch_compiled(injected: np.ndarray, offset_visibility: list | None) -> np
         vis = np.stack([np.asarray(v, np.float32).reshape(-1)[lit] for v in offset_visibility],
                        axis=1)
     m = np.ascontiguousarray(m, np.float32)
-    halves = ((0, q // 2), (q // 2, q))  # disjoint directions: no shared writes
-    for _ in _pool().map(lambda js: _launch_kernel(flux, m, start, dirs, vis, p, out, *js),
-                         halves):
-        pass
-    return out
+    return flux, m, start, dirs, vis
 
 
 def _offset_index(off: np.ndarray) -> np.ndarray:
@@ -356,6 +396,52 @@ def emission_band2(values: np.ndarray) -> np.ndarray:
         band2 = sh.evaluate_basis2(d)[..., 4:]
         out[..., 4:][lit] = (held * p2)[..., None] * band2
     return out
+
+
+@jit.kernel
+def _emission_band2_kernel(c, out):  # pragma: no cover - compiled
+    """``add_emission_band2`` row by row (compiled): out[i] += emission_band2(c[i]), the
+    arithmetic of closure.moments in float32 and of the band-2 term in float64, as the numpy
+    code."""
+    sqrt_4pi = np.float32(sh.SQRT_4PI)
+    to_flux = np.float32(closure.FLUX_FROM_BAND1)
+    max_cos = np.float32(closure.MAX_MEAN_COSINE)
+    lo, hi = 0.5 + 1e-6, closure.LAMBERTIAN_MEAN_COSINE
+    zero = np.float32(0.0)
+    for i in range(c.shape[0]):
+        for t in range(4):
+            out[i, t] += c[i, t]
+        if not c[i, 0] > zero:
+            continue
+        held = c[i, 0] * sqrt_4pi
+        vx, vy, vz = -c[i, 3] * to_flux, -c[i, 1] * to_flux, c[i, 2] * to_flux
+        norm = np.sqrt(vx * vx + vy * vy + vz * vz)
+        r = min(max(norm / held, zero), max_cos)
+        if not r > np.float32(0.5) or not norm > zero:
+            continue  # E[P2] = 0: no band 2
+        x, y, z = vx / norm, vy / norm, vz / norm
+        rr = min(max(np.float64(r), lo), hi)
+        n = (2.0 * rr - 1.0) / (1.0 - rr)
+        s = np.float64(held) * (n / (n + 3.0))
+        x, y, z = np.float64(x), np.float64(y), np.float64(z)
+        out[i, 4] += s * (sh.Y2A * x * y)
+        out[i, 5] += s * (sh.Y2A * y * z)
+        out[i, 6] += s * (sh.Y2B * (3.0 * z * z - 1.0))
+        out[i, 7] += s * (sh.Y2A * x * z)
+        out[i, 8] += s * (sh.Y2C * (x * x - y * y))
+
+
+def add_emission_band2(values: np.ndarray, injected: np.ndarray) -> None:
+    """values (..., 9) += emission_band2(injected (..., 4)), in place; compiled when
+    ``jit.enabled()`` (32^3: about 4 ms in numpy, its lit cells' moments in float64)."""
+    if not jit.enabled():
+        values += emission_band2(injected)
+        return
+    c = np.ascontiguousarray(injected, np.float32).reshape(-1, 4)
+    out = values.reshape(-1, sh.BANDS2)
+    if not np.shares_memory(out, values):
+        raise ValueError("add_emission_band2 needs a contiguous values array")
+    _emission_band2_kernel(c, out)
 
 
 def pad(flux: np.ndarray) -> np.ndarray:

@@ -446,7 +446,7 @@ def _propagate_ordinates(injected, iterations, min_fraction, visibility, occlude
             early = True
             break
     values = ordinates.fold(np.ascontiguousarray(ordinates.interior(acc, r)), sh.BANDS2)
-    values += ordinates.emission_band2(total)
+    ordinates.add_emission_band2(values, total)
     if outflow is not None:
         q = outflow.shape[0]
         outflow = ordinates.fold(outflow.reshape(q, 3, r + 2, r + 2, r + 2))
@@ -464,20 +464,16 @@ def _sweep_ordinates(injected, visibility, occlude_first_step, capture_outflow, 
     shell = capture_outflow
     offvis = _offset_visibilities(visibility)
     total = injected if passing is None else injected + passing
-    in_place = None  # the part of the source that is not an arrival (taken off A)
     if launch:
-        source = ordinates.launch(injected, offvis if occlude_first_step else None)
-        if passing is not None:
-            in_place = ordinates.pad(ordinates.unfold(passing))
-            source += in_place
-    elif occlude_first_step:
-        source = in_place = ordinates.pad(ordinates.unfold(total))
+        acc = transport_sweep.launch_solve(injected, offvis if occlude_first_step else None,
+                                           passing, offvis, shell)
+    elif occlude_first_step:  # the unfolded light is not an arrival: taken off A
+        source = ordinates.pad(ordinates.unfold(total))
+        acc = transport_sweep.solve(source, r, offvis, shell)
+        acc -= source
     else:  # the first step is unoccluded: take it as a step, sweep its arrivals
         source = ordinates.advance(ordinates.pad(ordinates.unfold(total)), ordinates.factors(r))
-    acc = transport_sweep.solve(source, r, offvis, shell)
-    if in_place is not None:
-        acc -= in_place
-    values = transport_sweep.fold(acc, r, sh.BANDS2)
-    values += ordinates.emission_band2(total)
-    outflow = transport_sweep.fold(acc, r, 4, "shell") if shell else None
+        acc = transport_sweep.solve(source, r, offvis, shell)
+    values, outflow = transport_sweep.fold_parts(acc, r, shell)
+    ordinates.add_emission_band2(values, total)
     return PropagationResult(values, 0, flux(total), 0.0, False, outflow, swept=True)

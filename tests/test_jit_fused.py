@@ -1,0 +1,103 @@
+"""Compiled fused steps of the discrete-ordinates sweep (lpv_core/sweep.py launch_solve and
+fold_parts, lpv_core/ordinates.py unfold_sparse and add_emission_band2): the same numbers as
+the numpy code, which stays the reference (jit.disabled()), and the same as the unfused steps
+they replace."""
+
+import numpy as np
+import pytest
+
+pytest.importorskip("numba")
+
+from test_jit_launch import _visibility, _vpls
+
+from lpv_core import jit, ordinates, propagation, sh
+from lpv_core import sweep as transport_sweep
+
+
+def _passing(r: int, seed: int) -> np.ndarray:
+    """Handed-on light in a few cells (as cascades.hand_on leaves it), one colour dark."""
+    rng = np.random.default_rng(seed)
+    out = np.zeros((r, r, r, 3, 4), np.float32)
+    cells = rng.integers(0, r, (12, 3))
+    out[cells[:, 0], cells[:, 1], cells[:, 2], :, 0] = rng.uniform(0.1, 1.0, (12, 3))
+    out[cells[:, 0], cells[:, 1], cells[:, 2], :, 1:] = rng.uniform(-0.2, 0.2, (12, 3, 3))
+    out[cells[0, 0], cells[0, 1], cells[0, 2], 2] = 0.0
+    return out
+
+
+@pytest.mark.parametrize("shell", [True, False])
+@pytest.mark.parametrize("handed_on", [False, True])
+def test_launch_solve_is_launch_then_solve_less_the_handed_on_light(shell, handed_on):
+    r = 10
+    injected = _vpls(r, seed=3)
+    offvis = propagation._offset_visibilities(_visibility(r, seed=4))
+    passing = _passing(r, seed=5) if handed_on else None
+    got = transport_sweep.launch_solve(injected, offvis, passing, offvis, shell)
+    # the steps apart, compiled: launch, the handed-on light unfolded densely, solve, less it
+    source = ordinates.launch(injected, offvis)
+    in_place = np.zeros_like(source)
+    if handed_on:
+        in_place = ordinates.pad(ordinates.unfold(passing))
+    apart = transport_sweep.solve(source + in_place, r, offvis, shell) - in_place
+    with jit.disabled():
+        want = transport_sweep.launch_solve(injected, offvis, passing, offvis, shell)
+    scale = np.abs(want).max()
+    assert scale > 0 and got.shape == want.shape == (ordinates.DIRECTIONS, 3, (r + 2) ** 3)
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-5 * scale)
+    np.testing.assert_allclose(got, apart, rtol=0, atol=1e-6 * scale)
+    if not shell:
+        grid = got.reshape(-1, 3, r + 2, r + 2, r + 2)
+        assert not grid[..., 0, :, :].any() and not grid[..., -1].any()
+
+
+def test_unfold_sparse_is_the_dense_unfold():
+    r = 8
+    passing = _passing(r, seed=9)
+    for enabled in (True, False):
+        with jit.disabled() if not enabled else _null():
+            index, flux = ordinates.unfold_sparse(passing)
+            dense = np.zeros((ordinates.DIRECTIONS, 3 * (r + 2) ** 3), np.float32)
+            dense[:, index] = flux
+            want = ordinates.pad(ordinates.unfold(passing)).reshape(ordinates.DIRECTIONS, -1)
+        assert len(np.unique(index)) == index.size == int((passing[..., 0] > 0).sum())
+        np.testing.assert_allclose(dense, want, rtol=0, atol=1e-6 * np.abs(want).max())
+
+
+class _null:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+
+@pytest.mark.parametrize("shell", [True, False])
+def test_fold_parts_is_the_two_folds(shell):
+    r = 9
+    light = np.random.default_rng(2).uniform(0, 1, (ordinates.DIRECTIONS, 3, (r + 2) ** 3))
+    light = light.astype(np.float32)
+    values, outflow = transport_sweep.fold_parts(light, r, shell)
+    want = transport_sweep.fold(light, r, sh.BANDS2)
+    assert values.shape == (r, r, r, 3, sh.BANDS2) and values.dtype == np.float32
+    np.testing.assert_allclose(values, want, rtol=1e-5, atol=1e-5 * np.abs(want).max())
+    if shell:
+        want = transport_sweep.fold(light, r, 4, "shell")
+        assert outflow.shape == want.shape == (r + 2, r + 2, r + 2, 3, 4)
+        np.testing.assert_allclose(outflow, want, rtol=1e-5, atol=1e-5 * np.abs(want).max())
+        assert not outflow[1:-1, 1:-1, 1:-1].any()
+    else:
+        assert outflow is None
+
+
+def test_add_emission_band2_is_emission_band2():
+    injected = _vpls(8, seed=11)
+    injected[0, 0, 0, :, 0] = -0.1  # band 0 <= 0: the moments are copied, no band 2
+    injected[0, 0, 0, :, 1:] = 0.2
+    base = np.random.default_rng(1).uniform(0, 1, injected.shape[:-1] + (sh.BANDS2,))
+    got = base.astype(np.float32)
+    ordinates.add_emission_band2(got, injected)
+    want = base.astype(np.float32) + ordinates.emission_band2(injected)
+    assert np.abs(ordinates.emission_band2(injected)[..., 4:]).max() > 0.01
+    np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-6 * np.abs(want).max())
+    with pytest.raises(ValueError, match="contiguous"):
+        ordinates.add_emission_band2(got[..., ::2, :], injected[..., ::2, :])
