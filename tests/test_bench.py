@@ -42,6 +42,13 @@ def test_quick_json_keys(quick_json):
     assert quick_json["angular"] == quick_json["settings"]["angular"] == GISettings().angular
     assert isinstance(quick_json["backend_used"], str) and quick_json["backend_used"]
     assert all(math.isfinite(v) and v >= 0 for v in quick_json["median_ms"].values())
+    # issue 6's stated quality (3 x 32^3): the full update and the cascades the planner ran
+    stated = quick_json["stated"]
+    assert stated["settings"]["grid_resolution"] == 32 and stated["settings"]["cascades"] == 3
+    assert _finite_positive(quick_json["full_update_stated_ms"])
+    assert quick_json["full_update_stated_ms"] == stated["full_update_ms"]
+    assert stated["cascades_run"] + len(stated["skipped"]) == 3 and stated["cascades_run"] >= 1
+    assert _finite_positive(stated["median_ms"]["propagation"])
 
 
 def test_sweep_has_every_value(quick_json):
