@@ -241,10 +241,13 @@ def _launch_compiled(injected: np.ndarray, offset_visibility: list | None) -> np
     return out
 
 
-def launch_inputs(injected: np.ndarray, offset_visibility: list | None) -> tuple:
+def launch_inputs(injected: np.ndarray, offset_visibility: list | None,
+                  stacked: np.ndarray | None = None) -> tuple:
     """What ``_launch_direction`` reads: (flux (q, 3 n) of the n lit cells, cell-major and
     colour-minor, their emission directions m (n, 3), padded flat cells (n,), directions
-    (q, 3), transmittances (n, 27) or (n, 0)); n = 0 when nothing is lit."""
+    (q, 3), transmittances (n, 27) or (n, 0)); n = 0 when nothing is lit. ``stacked``: the
+    same transmittances as sweep.stacked_visibility lays them out ((27, (R+2)^3), padded), read
+    there in one gather instead of 27."""
     dirs, _, _ = tables()
     q = len(dirs)
     r = injected.shape[0]
@@ -260,6 +263,8 @@ def launch_inputs(injected: np.ndarray, offset_visibility: list | None) -> tuple
     start = (ijk[:, 0] * p + ijk[:, 1]) * p + ijk[:, 2]
     if offset_visibility is None:
         vis = np.zeros((lit.size, 0), np.float32)
+    elif stacked is not None:
+        vis = np.ascontiguousarray(stacked[:, start].T)
     else:  # (n, 27): a cell's transmittances side by side
         vis = np.stack([np.asarray(v, np.float32).reshape(-1)[lit] for v in offset_visibility],
                        axis=1)

@@ -205,7 +205,8 @@ def _live_box(values: np.ndarray):
 
 
 _ADV_T = {}
-_OFFVIS: list = [None, None]  # [visibility array, its 27 offset transmittances]
+_OFFVIS: list = []  # [(visibility array, its 27 offset transmittances)], most recent first
+OFFVIS_CACHE = 4  # visibility arrays whose offset transmittances are kept (one per cascade)
 
 
 def _m1_adv_t() -> np.ndarray:
@@ -216,14 +217,24 @@ def _m1_adv_t() -> np.ndarray:
 
 
 def _offset_visibilities(visibility: np.ndarray | None):
-    """Transmittance towards each of the 27 offsets, cached for the last visibility array
-    (a propagation run reuses one array for all its steps)."""
+    """Transmittance towards each of the 27 offsets (float32 (R, R, R) each, OFFSETS order):
+    ``_offset_visibility`` of every offset at once, as the outer product of the three axes'
+    factors (-1: the lower face, 0: 1, +1: the upper face), multiplied in the same order.
+    Cached for the last OFFVIS_CACHE visibility arrays (a propagation reuses one array for
+    all its steps; an update of several cascades alternates between theirs)."""
     if visibility is None:
         return None
-    if _OFFVIS[0] is not visibility:
-        _OFFVIS[0] = visibility
-        _OFFVIS[1] = [_offset_visibility(visibility, off).astype(np.float32) for off in OFFSETS]
-    return _OFFVIS[1]
+    for vis, table in _OFFVIS:
+        if vis is visibility:
+            return table
+    v = np.asarray(visibility)
+    one = np.ones((1,) + v.shape[1:], v.dtype)
+    f = [np.concatenate([v[2 * a + 1][None], one, v[2 * a][None]]) for a in range(3)]
+    prod = (f[0][:, None, None] * f[1][None, :, None]) * f[2][None, None, :]
+    table = list(prod.reshape((27,) + v.shape[1:]).astype(np.float32, copy=False))
+    _OFFVIS.insert(0, (visibility, table))
+    del _OFFVIS[OFFVIS_CACHE:]
+    return table
 
 
 def _offset_visibility(visibility: np.ndarray, off) -> np.ndarray:

@@ -66,6 +66,23 @@ def test_the_compiled_sweep_is_the_numpy_sweep(r, shell, occluded, sparse):
         assert not edge.any()
 
 
+@pytest.mark.parametrize("r", [1, 3])
+@pytest.mark.parametrize("shell", [True, False])
+def test_the_compiled_sweep_on_tiny_grids(r, shell):
+    """One and three cells across (the slab-edge ranges and the shell slabs at their
+    smallest), lit everywhere, and lit only in the shell's far x face (the first lit slab is
+    then the last one along +x, the first one along -x)."""
+    rng = np.random.default_rng(r + 10 * shell)
+    vis = _visibility(r, rng)
+    face = np.zeros((64, 3, r + 2, r + 2, r + 2), np.float32)
+    face[:, :, -1] = rng.random((64, 3, r + 2, r + 2))
+    for source in (_source(r, rng, sparse=False), face.reshape(64, 3, -1)):
+        got = sweep.solve(source, r, vis, shell)
+        with jit.disabled():
+            want = sweep.solve(source, r, vis, shell)
+        np.testing.assert_allclose(got, want, rtol=0, atol=1e-5 * np.abs(want).max())
+
+
 def test_the_compiled_sweep_follows_the_visibility_list_it_is_given():
     """The stacked transmittances are cached by the list's identity: a second list on the
     same grid is read afresh (an opaque one lets nothing past the source cells)."""
