@@ -16,13 +16,14 @@ areas smeared ~12 % of a wall's edge faces' blocking onto the faces beside them,
 out of a closed crate at its edges). The transmittance 1 - B per face becomes the propagation
 ``visibility`` (6, R, R, R).
 
-Where numba is installed (jit.py), _subdivide, face_coverage and face_offsets run compiled
-kernels that repeat the numpy arithmetic and give the same bits (occluder_volume on the Cornell
-box, on 2 shared cores: about 40 -> 5 ms at R = 16, 150 -> 20 ms at R = 32).
+Where numba is installed (jit.py), _subdivide, face_coverage, face_offsets and occluder_volume
+run compiled kernels that repeat the numpy arithmetic and give the same bits (occluder_volume
+on the Cornell box, on 2 shared cores: about 40 -> 3 ms at R = 16, 150 -> 7 ms at R = 32).
 """
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -49,9 +50,9 @@ def _subdivide(positions: np.ndarray, spacing: float):
     p = np.asarray(positions, np.float64).reshape(-1, 3, 3)
     if p.shape[0] == 0:
         return np.zeros((0, 3, 3)), np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0)
-    normal, area2, k = _splits(p, spacing)
     if jit.enabled():
-        return _subdivide_compiled(p, normal, area2, k)
+        return _subdivide_compiled(p, *_splits_compiled(p, spacing))
+    normal, area2, k = _splits(p, spacing)
     out_t, out_i, out_n, out_a = [], [], [], []
     for kk in np.unique(k):
         sel = np.nonzero(k == kk)[0]
@@ -76,6 +77,17 @@ def _splits(p: np.ndarray, spacing: float):
     longest = np.max(np.linalg.norm(np.stack([e1, e2, p[:, 2] - p[:, 1]], 1), axis=2), axis=1)
     # (an edge that is an exact multiple of the spacing must not get one more split by rounding)
     k = np.clip(np.ceil(longest / max(spacing, 1e-30) - 1e-6), 1, 64).astype(np.int64)
+    return normal, area2, k
+
+
+def _splits_compiled(p: np.ndarray, spacing: float):
+    """_splits by _splits_kernel: the same normals, areas and k (0 where numpy's is no count:
+    a non-finite triangle), without numpy's dozen small calls (0.2 ms)."""
+    t = p.shape[0]
+    normal = np.empty((t, 3))
+    area2 = np.empty(t)
+    k = np.empty(t, np.int64)
+    _splits_kernel(np.ascontiguousarray(p), max(spacing, 1e-30), normal, area2, k)
     return normal, area2, k
 
 
@@ -276,6 +288,9 @@ def cell_gaps(grid: Grid, coverage: np.ndarray, offsets: np.ndarray) -> np.ndarr
 def occluder_volume(grid: Grid, triangles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(propagation visibility (6, R, R, R), cell_gaps (6, R, R, R)) of occluding triangles
     (T, 3, 3), cut into half-cell sub-triangles."""
+    if jit.enabled():
+        return _occluder_compiled(grid, np.ascontiguousarray(
+            np.asarray(triangles, np.float64).reshape(-1, 3, 3)))
     sub, _, normal, area = _subdivide(triangles, SURFEL_SPACING * grid.cell_size)
     coverage = face_coverage(grid, sub)
     return (_transmittance(grid, coverage),
@@ -296,31 +311,577 @@ def occluder_visibility(grid: Grid, triangles: np.ndarray) -> np.ndarray:
 
 # Compiled kernels (jit.py): the numpy code above is the reference; these repeat its arithmetic
 # operation for operation, one sub-triangle at a time, so the results are the same bits.
+#
+# Coverage in two passes. The first (_project_run) projects every sub-triangle onto its
+# nearest plane across each axis and keeps those that cover something as records (plane,
+# corners' u, v in sample units, twice the signed area), finding the largest sample window on
+# the way. Then the planes, split into parts of about equal work (_parts), are scanned from the
+# records on ordinates' pool threads (_cover_part: each part writes only its own planes' bits)
+# and counted (_finish_coverage, or _finish_volume straight into the visibility and gaps).
+# occluder_volume runs the first pass on the triangles themselves, in runs on the pool threads
+# (_occluder_kernel): each one's sub-triangle corners computed once per lattice point, as
+# _subdivide_kernel computes them, face_offsets' sums added on the way (no sub-triangle arrays,
+# no second conversion to cell units, each projection computed once).
+#
+# Hot loops call no compiled function with array arguments (each such call counts references
+# to its arrays: atomic operations that cost more than the work per sub-triangle).
+# Against the kernels before (cell units and _projected computed twice, a serial window pass,
+# one pool thread per axis, numpy glue), one process A/B on the Cornell box, 2 shared cores:
+# occluder_volume 5.3 -> 2.7 ms at R = 16, 16 -> 7 ms at R = 32.
+
+_RECORD = 8  # (plane, u0, u1, u2, v0, v1, v2, area2) per kept sub-triangle and axis
+
+
+def _occluder_compiled(grid: Grid, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """occluder_volume by the compiled kernels: _occluder_kernel on runs of the triangles (in
+    _subdivide's order) on the pool, then the planes' coverage, visibility and gaps in parts.
+
+    face_offsets' sums add the sub-triangles' terms in their order: the first run adds its
+    own; each later run logs them (face, weight, weighted distance), and each part adds the
+    logged terms of its own planes after the first run's, run by run, in order."""
+    from .ordinates import _pool, pool_workers
+
+    r = grid.resolution
+    m = COVERAGE_SAMPLES
+    if p.shape[0] == 0:
+        return np.ones((6, r, r, r), np.float32), np.zeros((6, r, r, r), np.float32)
+    normal, area2, k = _splits_compiled(p, SURFEL_SPACING * grid.cell_size)
+    pool = _pool()
+    order, o, first, n = _runs(k, max(1, min(pool_workers(), p.shape[0])))
+    runs = first.size
+    rec = np.empty((3, n, _RECORD))
+    nrec = np.zeros((runs, 3), np.int64)
+    windows = np.zeros((runs, 3, 2))
+    work = np.zeros((runs, 3 * (r + 1)), np.int64)
+    total = np.zeros((3, r + 1, r, r))
+    moment = np.zeros((3, r + 1, r, r))
+    # runs i > 0 log up to 3 terms per sub-triangle, from column at[i]
+    at = np.maximum(3 * (first - first[min(1, runs - 1)]), 0)
+    logged = np.empty((3, 3 * (n - first[1]) if runs > 1 else 0))
+    nlog = np.zeros(runs, np.int64)
+    origin = grid.origin_array
+    cell = float(grid.cell_size)
+
+    def run(i):
+        _occluder_kernel(p, order, k, o[i], o[i + 1], normal, area2, origin, cell, r, m, rec,
+                         first[i], nrec[i], windows[i], work[i], total, moment, i > 0,
+                         logged[:, at[i]:], nlog[i:i + 1])
+
+    _in_parallel(pool, run, range(runs))
+    hit = np.zeros((3, r + 1, r, r, (m * m + 63) // 64), np.int64)
+    vis = np.empty((6, r, r, r), np.float32)  # (every cell face is written: _finish_volume)
+    gaps = np.empty((6, r, r, r), np.float32)
+    window = np.zeros((3, 2))
+
+    def part(b):
+        for i in range(1, runs):
+            _add_logged(logged[:, at[i]:], nlog[i], r, b[0], b[1], total, moment)
+        _cover_part(rec, first, nrec, r, m, window, b[0], b[1], hit)
+        _finish_volume(hit, m, r, total, moment, b[0], b[1], vis, gaps)
+
+    _run_parts(pool, part, work, windows, r, window)
+    return vis, gaps
+
 
 def _coverage_compiled(grid: Grid, tri: np.ndarray, m: int, out: np.ndarray) -> np.ndarray:
-    """face_coverage by the compiled kernels, on the corners in cell units computed once
-    (_cell_units): the sample windows (_coverage_windows), then each axis's planes
-    (_cover_axis) on ordinates' pool threads."""
+    """face_coverage by the compiled kernels: _project_subs' records and window, then the
+    planes' coverage in parts on the pool."""
     from .ordinates import _pool
 
-    rel = np.empty(tri.shape)
-    _cell_units(tri, grid.origin_array, float(grid.cell_size), rel)
     r = grid.resolution
-    width, height = _coverage_windows(rel, r, m)
-    for _ in _pool().map(lambda a: _cover_axis(rel, r, m, a, width[a], height[a], out[a]),
-                         range(3)):
-        pass
+    rec = np.empty((3, tri.shape[0], _RECORD))
+    nrec = np.zeros((1, 3), np.int64)
+    windows = np.zeros((1, 3, 2))
+    work = np.zeros((1, 3 * (r + 1)), np.int64)
+    _project_subs(np.ascontiguousarray(tri), grid.origin_array, float(grid.cell_size), r, m,
+                  rec, nrec[0], windows[0], work[0])
+    hit = np.zeros((3, r + 1, r, r, (m * m + 63) // 64), np.int64)
+    first = np.zeros(1, np.int64)
+    window = np.zeros((3, 2))
+
+    def part(b):
+        _cover_part(rec, first, nrec, r, m, window, b[0], b[1], hit)
+        _finish_coverage(hit, m, r, b[0], b[1], out)
+
+    _run_parts(_pool(), part, work, windows, r, window)
     return out
 
 
+def _run_parts(pool, part, work: np.ndarray, windows: np.ndarray, r: int,
+               window: np.ndarray) -> None:
+    """part((b0, b1)) for the planes' parts (_parts, which also merges the runs' windows into
+    ``window``), one per pool thread."""
+    from .ordinates import pool_workers
+
+    bounds = np.empty(pool_workers() + 1, np.int64)
+    _parts(work, windows, r, bounds, window)
+    _in_parallel(pool, part, list(itertools.pairwise(bounds)))
+
+
+def _in_parallel(pool, fn, items) -> None:
+    """fn(item) for each of items at once: the first on this thread (one thread handoff
+    less, and this one works instead of waiting), the others on the pool's."""
+    items = list(items)
+    futures = [pool.submit(fn, item) for item in items[1:]]
+    try:
+        fn(items[0])
+    finally:
+        for future in futures:  # (all done before their arrays are let go)
+            future.result()
+
+
 @jit.kernel
-def _cell_units(tri, origin, cell, rel):
-    """rel = (tri - origin) / cell, without numpy's temporaries (3.3 -> 1.1 ms for 66 000
-    sub-triangles)."""
-    for n in range(tri.shape[0]):
+def _runs(k, runs):
+    """_subdivide's order of the triangles (by k, stable) cut into ``runs`` runs of about
+    equal numbers of sub-triangles: (order, the runs' first triangles in it (runs + 1), their
+    first sub-triangles (runs), the number of sub-triangles)."""
+    order = np.argsort(k, kind="mergesort")
+    end = np.cumsum(k[order] ** 2)  # sub-triangles up to each triangle's
+    n = end[-1]
+    o = np.empty(runs + 1, np.int64)
+    first = np.zeros(runs, np.int64)
+    o[0] = 0
+    o[runs] = order.size
+    for i in range(1, runs):
+        o[i] = np.searchsorted(end, i * (n / runs), side="right")
+        first[i] = end[o[i] - 1] if o[i] > 0 else 0
+    return order, o, first, n
+
+
+@jit.kernel
+def _parts(work, windows, r, bounds, window):
+    """Split the planes (3 (R + 1), axis-major: b = axis (R + 1) + plane) into len(bounds) - 1
+    parts of about equal work, bounds[i] .. bounds[i + 1]: each plane's records (work, per
+    run) times its axis's window, plus its faces' count. window: the largest of the runs'
+    windows."""
+    for i in range(windows.shape[0]):
+        for axis in range(3):
+            for d in range(2):
+                window[axis, d] = max(window[axis, d], windows[i, axis, d])
+    nb = work.shape[1]
+    cost = np.empty(nb)
+    for b in range(nb):
+        axis = b // (r + 1)
+        count = 0
+        for i in range(work.shape[0]):
+            count += work[i, b]
+        cost[b] = count * (window[axis, 0] + 1.0) * (window[axis, 1] + 1.0) + 0.25 * r * r
+    whole = cost.sum()
+    parts = bounds.shape[0] - 1
+    bounds[0] = 0
+    b = 0
+    acc = 0.0
+    for i in range(1, parts):
+        while b < nb and acc + 0.5 * cost[b] < whole * i / parts:
+            acc += cost[b]
+            b += 1
+        bounds[i] = b
+    bounds[parts] = nb
+
+
+@jit.kernel
+def _project_subs(tri, origin, cell, r, m, rec, nrec, window, work):
+    """_project_run over the sub-triangles tri (N, 3, 3), their corners in cell units as
+    face_coverage computes them: (tri - origin) / cell."""
+    n = tri.shape[0]
+    rel = np.empty((3 * n, 3))
+    smp = np.empty((3 * n, 3))
+    corners = np.empty((n, 3), np.int64)
+    for s in range(n):
         for c in range(3):
+            corners[s, c] = 3 * s + c
             for x in range(3):
-                rel[n, c, x] = (tri[n, c, x] - origin[x]) / cell
+                rel[3 * s + c, x] = (tri[s, c, x] - origin[x]) / cell
+                smp[3 * s + c, x] = rel[3 * s + c, x] * m - 0.5
+    none = np.zeros(0)
+    _project_run(rel, smp, corners, n, r, rec, 0, nrec, window, work, none, none, none, False,
+                 False, np.zeros((3, 0)), np.zeros(1, np.int64))
+
+
+@jit.kernel
+def _occluder_kernel(p, order, k, o0, o1, normal, area2, origin, cell, r, m, rec, first,
+                     nrec_out, window_out, work_out, total, moment, log, logged, nlog_out):
+    """occluder_volume's first pass over the triangles p[order[o0:o1]] (_subdivide's order,
+    records from row first): _project_run over each one's k^2 sub-triangles as
+    _subdivide_kernel cuts it, corners computed once per lattice point (i, j) / k, in cell
+    units as face_coverage computes them, with their face_offsets terms (added to total and
+    moment, or with ``log`` logged). Counts and window are kept here and written out at the
+    end (runs on pool threads write next to each other)."""
+    nrec = np.zeros(3, np.int64)
+    window = np.zeros((3, 2))
+    work = np.zeros(work_out.shape[0], np.int64)
+    nlog = np.zeros(1, np.int64)
+    kmax = 1
+    for o in range(o0, o1):
+        kmax = max(kmax, k[order[o]])
+    rel = np.empty(((kmax + 1) * (kmax + 1), 3))
+    smp = np.empty(((kmax + 1) * (kmax + 1), 3))
+    corners = np.empty((kmax * kmax, 3), np.int64)
+    wgt = np.empty(3)
+    total_flat = total.reshape(-1)
+    moment_flat = moment.reshape(-1)
+    for o in range(o0, o1):
+        t = order[o]
+        kk = k[t]
+        if kk < 1:
+            continue
+        for i in range(kk + 1):
+            for j in range(kk + 1 - i):
+                u = i / kk
+                v = j / kk
+                w = 1.0 - (u + v)
+                q = i * (kk + 1) + j
+                for x in range(3):
+                    rel[q, x] = (w * p[t, 0, x] + u * p[t, 1, x] + v * p[t, 2, x]
+                                 - origin[x]) / cell
+                    smp[q, x] = rel[q, x] * m - 0.5
+        s = 0
+        for i in range(kk):
+            for j in range(kk - i):
+                q = i * (kk + 1) + j
+                corners[s, 0] = q  # upright
+                corners[s, 1] = q + kk + 1
+                corners[s, 2] = q + 1
+                s += 1
+                if i + j < kk - 1:  # its inverted neighbour
+                    corners[s, 0] = q + kk + 1
+                    corners[s, 1] = q + kk + 2
+                    corners[s, 2] = q + 1
+                    s += 1
+        a = 0.5 * area2[t] / (kk * kk)
+        for x in range(3):
+            wgt[x] = a * abs(normal[t, x])
+        _project_run(rel, smp, corners, s, r, rec, first, nrec, window, work, wgt, total_flat,
+                     moment_flat, True, log, logged, nlog)
+    nrec_out[:] = nrec
+    window_out[:] = window
+    work_out[:] = work
+    nlog_out[0] = nlog[0]
+
+
+@jit.kernel
+def _project_run(rel, smp, corners, count, r, rec, row, nrec, window, work, wgt, total, moment,
+                 offsets, log, logged, nlog):
+    """Sub-triangles corners[:count] (indices into rel: cell units, and smp: the same times m,
+    minus 1/2: sample units) projected onto their nearest face planes across each axis, as
+    face_coverage computes them: where one covers something (not edge-on, plane inside the
+    grid), its record appended to rec[axis] (from row ``row``: nrec[axis] so far), the largest
+    sample window (width, height) any needs grown in window[axis], its plane's record count in
+    work. With ``offsets``, their face_offsets terms too (weight wgt[axis], centroid and plane
+    as face_offsets computes them), added to total and moment (flat), or with ``log`` appended
+    to logged ((face, weight, weighted distance), nlog[0] so far)."""
+    cen = np.empty(3)
+    for s in range(count):
+        a = corners[s, 0]
+        b = corners[s, 1]
+        c = corners[s, 2]
+        for x in range(3):
+            cen[x] = (rel[a, x] + rel[b, x] + rel[c, x]) / 3.0
+        for axis in range(3):
+            plane = math.floor(cen[axis] + 0.5 - 1e-6)
+            if not (plane >= 0.0 and plane <= r):
+                continue
+            u = 1 if axis == 0 else 0
+            v = 1 if axis == 2 else 2
+            u0 = smp[a, u]
+            u1 = smp[b, u]
+            u2 = smp[c, u]
+            v0 = smp[a, v]
+            v1 = smp[b, v]
+            v2 = smp[c, v]
+            area2, width, height = _projection(u0, u1, u2, v0, v1, v2)
+            if area2 != 0.0:
+                window[axis, 0] = max(window[axis, 0], width)
+                window[axis, 1] = max(window[axis, 1], height)
+                i = row + nrec[axis]
+                nrec[axis] += 1
+                rec[axis, i, 0] = plane
+                rec[axis, i, 1] = u0
+                rec[axis, i, 2] = u1
+                rec[axis, i, 3] = u2
+                rec[axis, i, 4] = v0
+                rec[axis, i, 5] = v1
+                rec[axis, i, 6] = v2
+                rec[axis, i, 7] = area2
+                work[axis * (r + 1) + np.int64(plane)] += 1
+            if not (offsets and wgt[axis] > 0.0):  # (none across 2 axes from an aligned wall)
+                continue
+            w = wgt[axis]
+            iu = math.floor(cen[u])
+            iv = math.floor(cen[v])
+            if iu >= 0.0 and iu < r and iv >= 0.0 and iv < r:
+                face = ((axis * (r + 1) + np.int64(plane)) * r + np.int64(iu)) * r + np.int64(iv)
+                d = w * (cen[axis] - plane)
+                if log:
+                    j = nlog[0]
+                    nlog[0] = j + 1
+                    logged[0, j] = face
+                    logged[1, j] = w
+                    logged[2, j] = d
+                else:
+                    total[face] += w
+                    moment[face] += d
+
+
+@jit.kernel
+def _projection(u0, u1, u2, v0, v1, v2):
+    """A sub-triangle's projection, corners (u, v) in sample units, onto a face plane inside
+    the grid, as face_coverage tests it: (twice its signed area, 0.0 where it covers nothing
+    (edge-on); the sample window (width, height) it needs)."""
+    area2 = (u1 - u0) * (v2 - v0) - (v1 - v0) * (u2 - u0)
+    if area2 == 0.0:  # (most sub-triangles of an axis-aligned wall, across 2 of the 3 axes)
+        return 0.0, 0.0, 0.0
+    lo_u = min(u0, u1, u2)
+    hi_u = max(u0, u1, u2)
+    lo_v = min(v0, v1, v2)
+    hi_v = max(v0, v1, v2)
+    span = max(hi_u - lo_u, hi_v - lo_v)
+    s = max(span, 1.0)
+    if not abs(area2) > 1e-9 * (s * s):
+        return 0.0, 0.0, 0.0
+    return (area2, math.floor(hi_u + 1e-9) - math.ceil(lo_u - 1e-9),
+            math.floor(hi_v + 1e-9) - math.ceil(lo_v - 1e-9))
+
+
+@jit.kernel
+def _add_logged(logged, n, r, b0, b1, total, moment):
+    """The first n logged face_offsets terms (_project_run) of planes b0 <= b < b1 added to
+    total and moment, in order."""
+    total_flat = total.reshape(-1)
+    moment_flat = moment.reshape(-1)
+    for j in range(n):
+        face = np.int64(logged[0, j])
+        b = face // (r * r)
+        if b >= b0 and b < b1:
+            total_flat[face] += logged[1, j]
+            moment_flat[face] += logged[2, j]
+
+
+@jit.kernel
+def _cover_part(rec, first, nrec, r, m, window, b0, b1, hit):
+    """The samples covered on planes b0 <= b < b1 (_parts' numbering) by their records
+    (_project_run; run h's from row first[h], nrec[h, axis] of them) as bits in hit (3, R + 1,
+    R, R, words): face by face, its m x m samples in words of 64 (the union; 8x less memory
+    than numpy's booleans, no pass over them).
+
+    Each record's projection covers a sample inside its three edges (same edge functions and
+    tolerances as face_coverage). Numpy scans every sub-triangle over the largest sample
+    window any of them needs (window[axis]), from its own first sample; so does this, so that
+    a sample just past a sliver's tip, inside all three edges' tolerance, counts there too.
+    The edge functions' terms are the same products and differences, each computed once per
+    window column (col: du (v - a_v)) or row (dv (u - a_u))."""
+    rm = r * m
+    col = np.empty((3, rm))
+    col_word = np.empty(rm, np.int64)
+    col_bit = np.empty(rm, np.int64)
+    words = hit.shape[4]
+    flat = hit.reshape(-1)
+    runs = first.shape[0]
+    for ah in range(3 * runs):
+        axis = ah // runs
+        h = ah - axis * runs
+        lo = max(b0 - axis * (r + 1), 0)
+        hi = min(b1 - axis * (r + 1), r + 1)
+        if lo >= hi:
+            continue
+        width = window[axis, 0]
+        height = window[axis, 1]
+        for n in range(first[h], first[h] + nrec[h, axis]):
+            plane = np.int64(rec[axis, n, 0])
+            if plane < lo or plane >= hi:
+                continue
+            u0 = rec[axis, n, 1]
+            u1 = rec[axis, n, 2]
+            u2 = rec[axis, n, 3]
+            v0 = rec[axis, n, 4]
+            v1 = rec[axis, n, 5]
+            v2 = rec[axis, n, 6]
+            j0 = math.ceil(min(u0, u1, u2) - 1e-9)
+            l0 = math.ceil(min(v0, v1, v2) - 1e-9)
+            ja = max(j0, 0.0)
+            jb = min(j0 + width, rm - 1.0)
+            la = max(l0, 0.0)
+            lb = min(l0 + height, rm - 1.0)
+            if ja > jb or la > lb:
+                continue
+            sign = 1.0 if rec[axis, n, 7] > 0.0 else -1.0
+            # edge i: corner i -> i + 1, oriented inside >= tolerance (relative to its length)
+            du0, dv0 = (u1 - u0) * sign, (v1 - v0) * sign
+            du1, dv1 = (u2 - u1) * sign, (v2 - v1) * sign
+            du2, dv2 = (u0 - u2) * sign, (v0 - v2) * sign
+            # The tolerances (-1e-9 x each edge's length) only decide a sample within their
+            # reach of an edge (at most twice 1e-9 (|du| + |dv|)): computed (hypot) only then.
+            reach0 = 2e-9 * (abs(du0) + abs(dv0))
+            reach1 = 2e-9 * (abs(du1) + abs(dv1))
+            reach2 = 2e-9 * (abs(du2) + abs(dv2))
+            tol0 = tol1 = tol2 = 0.0
+            exact = False
+            lv = np.int64(la)
+            cols = np.int64(lb) - lv + 1
+            iv = lv // m  # (faces and samples in them counted on, not divided for)
+            sv = lv - iv * m
+            for q in range(cols):
+                fv = float(lv + q)
+                col[0, q] = du0 * (fv - v0)
+                col[1, q] = du1 * (fv - v1)
+                col[2, q] = du2 * (fv - v2)
+                col_word[q] = iv * words  # (its face's first word in a row of faces)
+                col_bit[q] = sv
+                sv += 1
+                if sv == m:
+                    sv = 0
+                    iv += 1
+            start = np.int64(ja)
+            iu = start // m
+            su = start - iu * m
+            for ju in range(start, np.int64(jb) + 1):
+                fu = float(ju)
+                row0 = dv0 * (fu - u0)
+                row1 = dv1 * (fu - u1)
+                row2 = dv2 * (fu - u2)
+                row = su * m
+                base = ((axis * (r + 1) + plane) * r + iu) * r * words
+                su += 1
+                if su == m:
+                    su = 0
+                    iu += 1
+                # The row's bits gathered word by word in a register, each word written
+                # once. The samples in are one run (each edge's test is monotonic along the
+                # row, as rounding is): the row ends at the first one out after it.
+                word = -1
+                bits = 0
+                entered = False
+                for q in range(cols):
+                    e0 = col[0, q] - row0
+                    e1 = col[1, q] - row1
+                    e2 = col[2, q] - row2
+                    if e0 >= 0.0 and e1 >= 0.0 and e2 >= 0.0:
+                        inside = True
+                    elif e0 < -reach0 or e1 < -reach1 or e2 < -reach2:
+                        inside = False
+                    else:
+                        if not exact:
+                            tol0 = -1e-9 * math.hypot(du0, dv0)
+                            tol1 = -1e-9 * math.hypot(du1, dv1)
+                            tol2 = -1e-9 * math.hypot(du2, dv2)
+                            exact = True
+                        inside = e0 >= tol0 and e1 >= tol1 and e2 >= tol2
+                    if inside:
+                        bit = row + col_bit[q]
+                        at = base + col_word[q] + (bit >> 6)
+                        if at != word:
+                            if bits:
+                                flat[word] |= bits
+                            word = at
+                            bits = 0
+                        bits |= np.int64(1) << (bit & 63)
+                        entered = True
+                    elif entered:
+                        break
+                if bits:
+                    flat[word] |= bits
+
+
+@jit.kernel
+def _popcount(x):
+    """Set bits of the int64 x (the arithmetic shifts' sign bits are masked off)."""
+    x = x - ((x >> 1) & 0x5555555555555555)
+    x = (x & 0x3333333333333333) + ((x >> 2) & 0x3333333333333333)
+    x = (x + (x >> 4)) & 0x0F0F0F0F0F0F0F0F
+    return (x * 0x0101010101010101) >> 56
+
+
+@jit.kernel
+def _finish_coverage(hit, m, r, b0, b1, out):
+    """face_coverage (3, R + 1, R, R) of planes b0 <= b < b1: the mean over each face's m x m
+    samples."""
+    for b in range(b0, b1):
+        axis = b // (r + 1)
+        plane = b - axis * (r + 1)
+        for iu in range(r):
+            for iv in range(r):
+                count = 0
+                for word in range(hit.shape[4]):
+                    count += _popcount(hit[axis, plane, iu, iv, word])
+                out[axis, plane, iu, iv] = count / (m * m)
+
+
+@jit.kernel
+def _finish_volume(hit, m, r, total, moment, b0, b1, vis, gaps):
+    """occluder_volume's visibility and gaps (6, R, R, R) across planes b0 <= b < b1, from
+    their coverage and face_offsets' sums, as face_coverage, face_offsets, _transmittance and
+    cell_gaps compute them (np.maximum(x, 0.0): x where x > 0 or NaN, else +0.0). Each plane
+    is crossed by +axis from the cell below it (axis index plane - 1) and -axis from the cell
+    above (plane)."""
+    for b in range(b0, b1):
+        axis = b // (r + 1)
+        plane = b - axis * (r + 1)
+        for iu in range(r):
+            for iv in range(r):
+                count = 0
+                for word in range(hit.shape[4]):
+                    count += _popcount(hit[axis, plane, iu, iv, word])
+                w = total[axis, plane, iu, iv]
+                if count == 0 and not w > 0.0:  # (most faces: nothing there)
+                    trans = np.float32(1.0)
+                    up = down = np.float32(0.0)
+                else:
+                    cover = count / (m * m)
+                    trans = np.float32(1.0 - cover)
+                    offset = moment[axis, plane, iu, iv] / w if w > 0.0 else 0.0
+                    d = offset if cover > 0.5 else 0.0
+                    up = np.float32(d if (d > 0.0 or math.isnan(d)) else 0.0)
+                    down = np.float32(-d if (-d > 0.0 or math.isnan(d)) else 0.0)
+                if plane >= 1:
+                    if axis == 0:
+                        vis[0, plane - 1, iu, iv] = trans
+                        gaps[0, plane - 1, iu, iv] = down
+                    elif axis == 1:
+                        vis[2, iu, plane - 1, iv] = trans
+                        gaps[2, iu, plane - 1, iv] = down
+                    else:
+                        vis[4, iu, iv, plane - 1] = trans
+                        gaps[4, iu, iv, plane - 1] = down
+                if plane < r:
+                    if axis == 0:
+                        vis[1, plane, iu, iv] = trans
+                        gaps[1, plane, iu, iv] = up
+                    elif axis == 1:
+                        vis[3, iu, plane, iv] = trans
+                        gaps[3, iu, plane, iv] = up
+                    else:
+                        vis[5, iu, iv, plane] = trans
+                        gaps[5, iu, iv, plane] = up
+
+
+@jit.kernel
+def _splits_kernel(p, step, normal, area2, k):
+    """_splits' outputs: the same differences, products and sums, in numpy's order (np.cross;
+    np.linalg.norm adds the squares first to last), and roundings; step: max(spacing, 1e-30)."""
+    e = np.empty((3, 3))  # edges p1 - p0, p2 - p0, p2 - p1
+    for t in range(p.shape[0]):
+        for x in range(3):
+            e[0, x] = p[t, 1, x] - p[t, 0, x]
+            e[1, x] = p[t, 2, x] - p[t, 0, x]
+            e[2, x] = p[t, 2, x] - p[t, 1, x]
+        c0 = e[0, 1] * e[1, 2] - e[0, 2] * e[1, 1]
+        c1 = e[0, 2] * e[1, 0] - e[0, 0] * e[1, 2]
+        c2 = e[0, 0] * e[1, 1] - e[0, 1] * e[1, 0]
+        a = math.sqrt((c0 * c0 + c1 * c1) + c2 * c2)
+        area2[t] = a
+        d = a if a > 0 else 1.0
+        normal[t, 0] = c0 / d
+        normal[t, 1] = c1 / d
+        normal[t, 2] = c2 / d
+        longest = 0.0
+        nan = False
+        for i in range(3):
+            length = math.sqrt((e[i, 0] * e[i, 0] + e[i, 1] * e[i, 1]) + e[i, 2] * e[i, 2])
+            nan = nan or math.isnan(length)
+            longest = max(longest, length)
+        # (an edge that is an exact multiple of the spacing must not get one more split)
+        split = np.ceil(longest / step - 1e-6) if not nan else math.nan
+        k[t] = 0 if math.isnan(split) else np.int64(min(max(split, 1.0), 64.0))
 
 
 @jit.kernel
@@ -334,137 +895,23 @@ def _subdivide_kernel(p, order, k, start, normal, area2, sub, index, nrm, area):
         n = start[o]
         for i in range(kk):
             for j in range(kk - i):
-                _sub_triangle(p, t, kk, i, j, i + 1, j, i, j + 1, sub, n)  # upright
-                n += 1
-                if i + j < kk - 1:  # its inverted neighbour
-                    _sub_triangle(p, t, kk, i + 1, j, i + 1, j + 1, i, j + 1, sub, n)
+                for inverted in range(2 if i + j < kk - 1 else 1):  # upright, its neighbour
+                    for c in range(3):
+                        # lattice corner (ci, cj): upright (i, j), (i + 1, j), (i, j + 1),
+                        # inverted (i + 1, j), (i + 1, j + 1), (i, j + 1)
+                        ci = i + (1 if c == 1 or (c == 0 and inverted == 1) else 0)
+                        cj = j + (1 if c == 2 or (c == 1 and inverted == 1) else 0)
+                        u = ci / kk
+                        v = cj / kk
+                        w = 1.0 - (u + v)
+                        for x in range(3):
+                            sub[n, c, x] = w * p[t, 0, x] + u * p[t, 1, x] + v * p[t, 2, x]
                     n += 1
         for row in range(start[o], n):
             index[row] = t
             for x in range(3):
                 nrm[row, x] = normal[t, x]
             area[row] = a
-
-
-@jit.kernel
-def _sub_triangle(p, t, k, i0, j0, i1, j1, i2, j2, sub, n):
-    """sub[n] = the sub-triangle of p[t] with lattice corners (i, j) / k: barycentric
-    (1 - (u + v), u, v) as _sub_corners makes them, summed as the einsum sums them."""
-    for c in range(3):
-        ci = i0 if c == 0 else (i1 if c == 1 else i2)
-        cj = j0 if c == 0 else (j1 if c == 1 else j2)
-        u = ci / k
-        v = cj / k
-        w = 1.0 - (u + v)
-        for x in range(3):
-            sub[n, c, x] = w * p[t, 0, x] + u * p[t, 1, x] + v * p[t, 2, x]
-
-
-@jit.kernel
-def _projected(rel, n, r, m, axis, u, v):
-    """Sub-triangle n of rel (corners in cell units) projected onto its nearest face plane
-    across ``axis``, as face_coverage computes it: (plane, -1 when it covers nothing (edge-on,
-    or outside the grid's planes); corners' u, v in sample units; twice the signed projected
-    area)."""
-    plane = math.floor((rel[n, 0, axis] + rel[n, 1, axis] + rel[n, 2, axis]) / 3.0 + 0.5 - 1e-6)
-    u0 = rel[n, 0, u] * m - 0.5
-    u1 = rel[n, 1, u] * m - 0.5
-    u2 = rel[n, 2, u] * m - 0.5
-    v0 = rel[n, 0, v] * m - 0.5
-    v1 = rel[n, 1, v] * m - 0.5
-    v2 = rel[n, 2, v] * m - 0.5
-    area2 = (u1 - u0) * (v2 - v0) - (v1 - v0) * (u2 - u0)
-    span = max(max(u0, u1, u2) - min(u0, u1, u2), max(v0, v1, v2) - min(v0, v1, v2))
-    s = max(span, 1.0)
-    keep = abs(area2) > 1e-9 * (s * s) and plane >= 0.0 and plane <= r
-    return (np.int64(plane) if keep else -1), u0, u1, u2, v0, v1, v2, area2
-
-
-@jit.kernel
-def _coverage_windows(rel, r, m):
-    """Per axis the largest sample window (width, height) any sub-triangle rel (N, 3, 3) in
-    cell units needs. face_coverage's planes across each axis (_cover_axis) mark the samples
-    each kept sub-triangle's projection covers (same edge functions and tolerances) in a bit
-    per sample (the union), and count them per face.
-
-    Numpy scans every sub-triangle over the largest sample window any of them needs, from its
-    own first sample; so does _cover_axis (this pass finds that window), so that a sample just
-    past a sliver's tip, inside all three edges' tolerance, counts there too."""
-    width = np.zeros(3)
-    height = np.zeros(3)
-    for n in range(rel.shape[0]):
-        for axis in range(3):
-            u = 1 if axis == 0 else 0
-            v = 1 if axis == 2 else 2
-            plane, u0, u1, u2, v0, v1, v2, _ = _projected(rel, n, r, m, axis, u, v)
-            if plane >= 0:
-                width[axis] = max(width[axis], math.floor(max(u0, u1, u2) + 1e-9)
-                                  - math.ceil(min(u0, u1, u2) - 1e-9))
-                height[axis] = max(height[axis], math.floor(max(v0, v1, v2) + 1e-9)
-                                   - math.ceil(min(v0, v1, v2) - 1e-9))
-    return width, height
-
-
-@jit.kernel
-def _cover_axis(rel, r, m, axis, width, height, out):
-    """face_coverage's planes across ``axis`` into out (R + 1, R, R)."""
-    u = 1 if axis == 0 else 0
-    v = 1 if axis == 2 else 2
-    rm = r * m
-    # The union: one bit per sample (face by face, its m x m samples in words of 64), a face's
-    # count going up when one of its bits is first set (8x less memory than numpy's booleans,
-    # and no pass over them afterwards).
-    words = (m * m + 63) // 64
-    hit = np.zeros((r + 1, r, r, words), np.int64)
-    count = np.zeros((r + 1, r, r), np.int64)
-    pu = np.empty(4)
-    pv = np.empty(4)
-    for n in range(rel.shape[0]):
-        plane, pu[0], pu[1], pu[2], pv[0], pv[1], pv[2], area2 = _projected(rel, n, r, m,
-                                                                            axis, u, v)
-        if plane < 0:
-            continue
-        pu[3] = pu[0]
-        pv[3] = pv[0]
-        sign = 1.0 if area2 > 0.0 else -1.0
-        # edge i: corner i -> i + 1, oriented inside >= tolerance (relative to its length)
-        au0, av0 = pu[0], pv[0]
-        du0, dv0 = (pu[1] - pu[0]) * sign, (pv[1] - pv[0]) * sign
-        au1, av1 = pu[1], pv[1]
-        du1, dv1 = (pu[2] - pu[1]) * sign, (pv[2] - pv[1]) * sign
-        au2, av2 = pu[2], pv[2]
-        du2, dv2 = (pu[3] - pu[2]) * sign, (pv[3] - pv[2]) * sign
-        tol0 = -1e-9 * math.hypot(du0, dv0)
-        tol1 = -1e-9 * math.hypot(du1, dv1)
-        tol2 = -1e-9 * math.hypot(du2, dv2)
-        j0 = math.ceil(min(pu[0], pu[1], pu[2]) - 1e-9)
-        l0 = math.ceil(min(pv[0], pv[1], pv[2]) - 1e-9)
-        ja = max(j0, 0.0)
-        jb = min(j0 + width, rm - 1.0)
-        la = max(l0, 0.0)
-        lb = min(l0 + height, rm - 1.0)
-        if ja > jb or la > lb:
-            continue
-        for ju in range(np.int64(ja), np.int64(jb) + 1):
-            fu = float(ju)
-            iu = ju // m
-            row = (ju - iu * m) * m
-            for lv in range(np.int64(la), np.int64(lb) + 1):
-                fv = float(lv)
-                if (du0 * (fv - av0) - dv0 * (fu - au0) >= tol0
-                        and du1 * (fv - av1) - dv1 * (fu - au1) >= tol1
-                        and du2 * (fv - av2) - dv2 * (fu - au2) >= tol2):
-                    iv = lv // m
-                    bit = row + lv - iv * m
-                    mask = np.int64(1) << (bit & 63)
-                    word = hit[plane, iu, iv, bit >> 6]
-                    if not word & mask:
-                        hit[plane, iu, iv, bit >> 6] = word | mask
-                        count[plane, iu, iv] += 1
-    for p in range(r + 1):  # the mean over each face's m x m samples
-        for iu in range(r):
-            for iv in range(r):
-                out[p, iu, iv] = count[p, iu, iv] / (m * m)
 
 
 @jit.kernel

@@ -536,9 +536,13 @@ def _pool():
     if not _POOL:
         from concurrent.futures import ThreadPoolExecutor
 
-        _POOL.append(ThreadPoolExecutor(max(1, min(8, os.cpu_count() or 1)),
-                                        thread_name_prefix="lpv-octant"))
+        _POOL.append(ThreadPoolExecutor(pool_workers(), thread_name_prefix="lpv-octant"))
     return _POOL[0]
+
+
+def pool_workers() -> int:
+    """The threads of ``_pool``: one per core, at most 8 (the octants)."""
+    return max(1, min(8, os.cpu_count() or 1))
 
 
 def _advance_octant(src: np.ndarray, row: list, out: np.ndarray) -> None:

@@ -153,7 +153,7 @@ def test_edges_through_samples_and_slivers_match_numpy(resolution, origin, cell)
     # (2) slivers along a row of samples, as thin as 1e-10 .. 1e-8 of their length (around
     # the edge-on threshold, 1e-9), whose tolerance-grown tips reach a sample past their
     # bounding boxes (counted only inside the largest window any triangle needs: see
-    # _cover_axis).
+    # _cover_part).
     rng = np.random.default_rng(resolution)
     grid = Grid(origin, cell, resolution)
     rm = resolution * geometry_volume.COVERAGE_SAMPLES
@@ -195,3 +195,17 @@ def test_other_sample_counts_match_numpy(samples):
 def test_empty_matches_numpy():
     grid = Grid((0.0, 0.0, 0.0), 1.0, 4)
     _check(grid, np.zeros((0, 3, 3)))
+
+
+def test_occluder_volume_runs_match_numpy():
+    # occluder_volume's first pass runs over the triangles in runs, on the pool threads; the
+    # face_offsets sums of faces that several runs reach must still add in sub-triangle order:
+    # a wall, the same wall again, a tilted copy and a moved one (split two and two), all on
+    # the same faces.
+    grid = Grid((0.0, 0.0, 0.0), 1.0, 6)
+    wall = np.array([[[2.3, 0.5, 0.5], [2.3, 5.5, 0.5], [2.3, 5.5, 5.5]]])
+    tilt = wall.copy()
+    tilt[0, 2, 0] += 0.3
+    moved = wall + np.array([0.1, 0.0, 0.0])
+    _same(*_both(geometry_volume.occluder_volume, grid, np.concatenate([wall, wall, tilt, moved])))
+    _check(grid, np.concatenate([wall, moved, tilt, wall]))
