@@ -52,6 +52,15 @@ def kappa(r: np.ndarray) -> np.ndarray:
     return r * (3.0 - r * r) / (1.0 - r * r)
 
 
+def emission_exponent(r: np.ndarray) -> np.ndarray:
+    """n of emission_density's cos^n for mean cosine r: (2r - 1) / (1 - r) with r clipped to
+    [1/2, 2/3], exactly 1 at the Lambertian bound (a flat emitter; the formula in float32
+    gives 1 + 2e-7 there, and a cosine needs no power)."""
+    rr = np.clip(r, 0.5 + 1e-6, LAMBERTIAN_MEAN_COSINE)
+    return np.where(rr >= LAMBERTIAN_MEAN_COSINE, 1.0, (2.0 * rr - 1.0) / (1.0 - rr)).astype(
+        rr.dtype, copy=False)
+
+
 def emission_density(r: np.ndarray, cosines: np.ndarray) -> np.ndarray:
     """Unnormalised angular density of light just emitted by diffuse surfaces, for mean
     cosine r (broadcast against ``cosines`` = <d, w>).
@@ -65,10 +74,10 @@ def emission_density(r: np.ndarray, cosines: np.ndarray) -> np.ndarray:
     r = np.asarray(r)
     c = np.asarray(cosines)
     up = c > 0
-    rr = np.clip(r, 0.5 + 1e-6, LAMBERTIAN_MEAN_COSINE)
-    n = (2.0 * rr - 1.0) / (1.0 - rr)
+    n = emission_exponent(r)
     with np.errstate(divide="ignore"):
-        powered = np.where(up, np.exp(n * np.log(np.where(up, c, 1.0))), 0.0)
+        powered = np.where(up, np.where(n == 1.0, c, np.exp(n * np.log(np.where(up, c, 1.0)))),
+                           0.0)
     return np.where(r > 0.5, powered, (1.0 - 2.0 * r) + 4.0 * r * up)
 
 

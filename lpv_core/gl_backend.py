@@ -553,7 +553,7 @@ void main() {
             float k = rc * (3.0 - rc * rc) / (1.0 - rc * rc);  // closure.kappa
             float re = r;  // closure.emission_density: cos^ne above 1/2, else iso + hemisphere
             float rr = clamp(r, 0.5 + 1e-6, EMISSION_R_MAX);
-            float ne = (2.0 * rr - 1.0) / (1.0 - rr);
+            float ne = rr >= EMISSION_R_MAX ? 1.0 : (2.0 * rr - 1.0) / (1.0 - rr);
             float b, cw, total = 0.0;
 BUNDLES
             scale = held / total;
@@ -756,7 +756,7 @@ void main() {
         vec3 d;
         moments(v, held, r, d);
         float rr = clamp(r, 0.5 + 1e-6, EMISSION_R_MAX);  // closure.emission_density
-        float ne = (2.0 * rr - 1.0) / (1.0 - rr);
+        float ne = rr >= EMISSION_R_MAX ? 1.0 : (2.0 * rr - 1.0) / (1.0 - rr);
         float b[Q];
         float cw, x, total = 0.0;
 BUNDLES
@@ -837,7 +837,7 @@ FOLD4
                 vec3 d;
                 moments(v, held, r, d);
                 float rr = clamp(r, 0.5 + 1e-6, EMISSION_R_MAX);
-                float ne = (2.0 * rr - 1.0) / (1.0 - rr);
+                float ne = rr >= EMISSION_R_MAX ? 1.0 : (2.0 * rr - 1.0) / (1.0 - rr);
                 float h = held * (r > 0.5 ? ne / (ne + 3.0) : 0.0);
                 nn[ch] += h * vec4(Y2A * d.x * d.y, Y2A * d.y * d.z, Y2B * (3.0 * d.z * d.z - 1.0),
                                    Y2A * d.x * d.z);

@@ -146,15 +146,23 @@ def _unfold_kernel(cells, rows, dest, dirs, out):  # pragma: no cover - compiled
         else:
             vx, vy, vz = zero, zero, zero
         rr = min(max(r, lo), hi)
-        n = (two * rr - one) / (one - rr)
         total = zero
-        for j in range(q):
-            c = dirs[j, 0] * vx + dirs[j, 1] * vy + dirs[j, 2] * vz
-            if r > half:
+        if r > half and rr >= hi:  # closure.emission_exponent: n = 1, a plain cosine
+            for j in range(q):
+                c = dirs[j, 0] * vx + dirs[j, 1] * vy + dirs[j, 2] * vz
+                w[j] = max(zero, c)
+                total += w[j]
+        elif r > half:
+            n = (two * rr - one) / (one - rr)
+            for j in range(q):
+                c = dirs[j, 0] * vx + dirs[j, 1] * vy + dirs[j, 2] * vz
                 w[j] = np.exp(n * np.log(c)) if c > zero else zero
-            else:
+                total += w[j]
+        else:
+            for j in range(q):
+                c = dirs[j, 0] * vx + dirs[j, 1] * vy + dirs[j, 2] * vz
                 w[j] = (one - two * r) + (four * r if c > zero else zero)
-            total += w[j]
+                total += w[j]
         if not total > zero:
             for j in range(q):
                 w[j] = one
@@ -395,8 +403,7 @@ def emission_band2(values: np.ndarray) -> np.ndarray:
     lit = c[..., 0] > 0
     if lit.any():
         held, r, d = closure.moments(c[lit])
-        rr = np.clip(r.astype(np.float64), 0.5 + 1e-6, closure.LAMBERTIAN_MEAN_COSINE)
-        n = (2.0 * rr - 1.0) / (1.0 - rr)
+        n = closure.emission_exponent(r.astype(np.float64))
         p2 = np.where(r > 0.5, n / (n + 3.0), 0.0)
         band2 = sh.evaluate_basis2(d)[..., 4:]
         out[..., 4:][lit] = (held * p2)[..., None] * band2
@@ -426,7 +433,7 @@ def _emission_band2_kernel(c, out):  # pragma: no cover - compiled
             continue  # E[P2] = 0: no band 2
         x, y, z = vx / norm, vy / norm, vz / norm
         rr = min(max(np.float64(r), lo), hi)
-        n = (2.0 * rr - 1.0) / (1.0 - rr)
+        n = 1.0 if rr >= hi else (2.0 * rr - 1.0) / (1.0 - rr)  # closure.emission_exponent
         s = np.float64(held) * (n / (n + 3.0))
         x, y, z = np.float64(x), np.float64(y), np.float64(z)
         out[i, 4] += s * (sh.Y2A * x * y)
