@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import jit
+from . import jit, ordinates
 from . import lights as lights_mod
 from .raster import Rasterizer
 from .scene import Light
@@ -97,34 +97,41 @@ def _vpls(light: Light, view: lights_mod.LightView, p4, n4, r4, origin) -> tuple
     size = p4.shape[0]
     inv = np.linalg.inv(np.asarray(view.view, np.float64))
     cos_half = float(np.cos(0.5 * light.spot_size)) if light.type == "SPOT" else 0.0
-    out = _vpl_kernel(p4, n4, r4, np.asarray(origin, np.float64), bool(view.ortho),
-                      float(view.tan_half), float(view.half_extent),
-                      np.ascontiguousarray(inv[:3, 0]), np.ascontiguousarray(inv[:3, 1]),
-                      np.ascontiguousarray(-inv[:3, 2]),
-                      np.asarray(light.position, np.float64),
-                      np.asarray(light.direction, np.float64), _KINDS[light.type],
-                      float(light.power), cos_half,
-                      (1.0 - cos_half) * float(light.spot_blend) if light.type == "SPOT" else 0.0,
-                      np.asarray(light.color, np.float64), size)
-    n = out[-1]
-    return tuple(a[:n] for a in out[:-1])
+    args = (p4, n4, r4, np.asarray(origin, np.float64), bool(view.ortho),
+            float(view.tan_half), float(view.half_extent),
+            np.ascontiguousarray(inv[:3, 0]), np.ascontiguousarray(inv[:3, 1]),
+            np.ascontiguousarray(-inv[:3, 2]), np.asarray(light.position, np.float64),
+            np.asarray(light.direction, np.float64), _KINDS[light.type], float(light.power),
+            cos_half,
+            (1.0 - cos_half) * float(light.spot_blend) if light.type == "SPOT" else 0.0,
+            np.asarray(light.color, np.float64), size)
+    out = (np.empty((size * size, 3)), np.empty((size * size, 3)), np.empty((size * size, 3)),
+           np.empty(size * size))
+    # The rows in two parts of equal covered texels, on two threads (the kernel releases the
+    # GIL): Cornell box spot RSM, 256^2, 1.6 -> ~0.9 ms; the second part's VPLs then move
+    # down behind the first part's.
+    covered = np.cumsum(np.count_nonzero(p4[..., 3] > 0.5, axis=1))
+    half = min(max(int(np.searchsorted(covered, covered[-1] / 2.0)), 1), size - 1)
+    counts = list(ordinates._pool().map(lambda rows: _vpl_kernel(*args, *rows, *out),
+                                        ((0, half), (half, size))))
+    n0, n1 = counts
+    if n0 < half * size:
+        for a in out:
+            a[n0:n0 + n1] = a[half * size:half * size + n1]
+    return tuple(a[:n0 + n1] for a in out)
 
 
 @jit.kernel
 def _vpl_kernel(p4, n4, r4, origin, ortho, tan_half, half_extent, right, up, fwd, eye, axis,
-                kind, power, cos_half, smooth, color, size):
-    """One pass over a view's texels (rows top-first, as ``p4`` is given): the VPL of every
-    covered texel that reflects a finite, non-zero flux, with the formulas of texel_rays,
-    texel_flux and lights.intensity (point, spot cone smoothstep, area cosine; sun: irradiance
-    ``power`` times the texel area)."""
-    cells = size * size
-    pos = np.empty((cells, 3))
-    nrm = np.empty((cells, 3))
-    flux = np.empty((cells, 3))
-    area = np.empty(cells)
+                kind, power, cos_half, smooth, color, size, row0, row1, pos, nrm, flux, area):
+    """One pass over rows row0..row1-1 of a view's texels (rows top-first, as ``p4`` is given):
+    the VPL of every covered texel that reflects a finite, non-zero flux, with the formulas of
+    texel_rays, texel_flux and lights.intensity (point, spot cone smoothstep, area cosine; sun:
+    irradiance ``power`` times the texel area), written in texel order into pos, nrm, flux,
+    area from row row0 * size on; returns how many."""
     texel_area = (2.0 * half_extent / size) * (2.0 * half_extent / size)
-    n = 0
-    for row in range(size):
+    n = row0 * size
+    for row in range(row0, row1):
         for col in range(size):
             if not p4[row, col, 3] > 0.5:
                 continue
@@ -177,4 +184,4 @@ def _vpl_kernel(p4, n4, r4, origin, ortho, tan_half, half_extent, right, up, fwd
             flux[n, 0], flux[n, 1], flux[n, 2] = f0, f1, f2
             area[n] = a
             n += 1
-    return pos, nrm, flux, area, n
+    return n - row0 * size
