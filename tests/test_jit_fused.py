@@ -101,3 +101,27 @@ def test_add_emission_band2_is_emission_band2():
     np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-6 * np.abs(want).max())
     with pytest.raises(ValueError, match="contiguous"):
         ordinates.add_emission_band2(got[..., ::2, :], injected[..., ::2, :])
+
+
+def test_compiled_hand_on_is_numpy_hand_on():
+    """cascades.hand_on over the shell only (compiled) adds the same bits as np.add.at; an
+    outflow with light inside (not what propagation leaves) takes the numpy path, the same."""
+    from lpv_core import cascades, grid
+
+    rng = np.random.default_rng(4)
+    r = 6
+    finer = grid.Grid((0.13, -0.4, 0.27), 0.25, r)
+    coarser = grid.Grid((0.6, -1.15, -0.48), 0.5, r)  # holds only part of finer's shell
+    outflow = rng.uniform(0.1, 1.0, (r + 2, r + 2, r + 2, 3, 4)).astype(np.float32)
+    outflow[1:-1, 1:-1, 1:-1] = 0.0
+    outflow[0, 3, 4] = 0.0  # a dark shell cell
+    inside = np.pad(np.ones((r, r, r, 3, 4), np.float32), ((1, 1),) * 3 + ((0, 0),) * 2)
+    for flow in (outflow, outflow + inside):
+        before = rng.uniform(0.0, 1.0, (r, r, r, 3, 4)).astype(np.float32)
+        got, want = before.copy(), before.copy()
+        cascades.hand_on(finer, flow, coarser, got)
+        with jit.disabled():
+            cascades.hand_on(finer, flow, coarser, want)
+        assert np.array_equal(got, want)
+        added = float((got - before).sum(dtype=np.float64))
+        assert 0 < added < 0.9 * float(flow.sum(dtype=np.float64))  # some of it left
