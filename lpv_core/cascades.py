@@ -118,6 +118,15 @@ def place(lo, hi, resolution: int, count: int, camera=None, focus=None) -> list[
 
 def assign(chain: list[Grid], positions: np.ndarray, margin_cells: float = 1.0) -> np.ndarray:
     """Index into ``chain`` of the finest cascade holding each point with a margin, (N,)."""
+    if jit.enabled() and len(chain) > 1:
+        boxes = np.empty((len(chain) - 1, 2, 3))
+        for i, g in enumerate(chain[:-1]):
+            lo, hi = g.bounds()
+            m = margin_cells * g.cell_size
+            boxes[i, 0], boxes[i, 1] = lo + m, hi - m
+        level = np.empty(positions.shape[0], np.int64)
+        _assign_kernel(np.asarray(positions, np.float64), boxes, level)
+        return level
     level = np.full(positions.shape[0], len(chain) - 1, np.int64)
     free = np.ones(positions.shape[0], bool)
     for i, g in enumerate(chain[:-1]):
@@ -154,6 +163,20 @@ def hand_on(finer: Grid, outflow: np.ndarray, coarser: Grid, target: np.ndarray)
     flat_target = target.reshape(-1, 12)
     dest = (cell[ok, 0] * r + cell[ok, 1]) * r + cell[ok, 2]
     np.add.at(flat_target, dest, flat[live[ok]])
+
+
+@jit.kernel
+def _assign_kernel(points, boxes, level):  # pragma: no cover - compiled
+    """``assign`` point by point: the first box (lo, hi) holding it (bounds included), else
+    the coarsest cascade (one past the boxes)."""
+    for n in range(points.shape[0]):
+        level[n] = boxes.shape[0]
+        for i in range(boxes.shape[0]):
+            x, y, z = points[n, 0], points[n, 1], points[n, 2]
+            if (boxes[i, 0, 0] <= x <= boxes[i, 1, 0] and boxes[i, 0, 1] <= y <= boxes[i, 1, 1]
+                    and boxes[i, 0, 2] <= z <= boxes[i, 1, 2]):
+                level[n] = i
+                break
 
 
 @jit.kernel

@@ -125,3 +125,21 @@ def test_compiled_hand_on_is_numpy_hand_on():
         assert np.array_equal(got, want)
         added = float((got - before).sum(dtype=np.float64))
         assert 0 < added < 0.9 * float(flow.sum(dtype=np.float64))  # some of it left
+
+
+def test_compiled_assign_is_numpy_assign():
+    """cascades.assign compiled: the same finest cascade per point as numpy's, points on the
+    margins and NaN included."""
+    from lpv_core import cascades, grid
+
+    chain = [grid.Grid((0.0, 0.0, 0.0), 0.25, 8), grid.Grid((-1.0, -1.0, -1.0), 0.5, 8),
+             grid.Grid((-3.0, -3.0, -3.0), 1.0, 8)]
+    rng = np.random.default_rng(6)
+    points = rng.uniform(-3.5, 5.5, (4000, 3))
+    points[:5] = [[0.25, 0.25, 0.25], [1.75, 1.75, 1.75], [0.2499, 1.0, 1.0],
+                  [np.nan, 0.5, 0.5], [-0.5, -0.5, -0.5]]  # margins, NaN
+    got = cascades.assign(chain, points)
+    with jit.disabled():
+        want = cascades.assign(chain, points)
+    assert np.array_equal(got, want) and got.dtype == want.dtype
+    assert set(np.unique(want)) == {0, 1, 2}
