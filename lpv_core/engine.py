@@ -15,6 +15,7 @@ import numpy as np
 
 from . import (
     areas,
+    blas,
     cascades,
     geometry_volume,
     heap,
@@ -89,6 +90,7 @@ class Engine:
 
     def __init__(self, raster=None):
         heap.retain_freed_memory()  # big arrays reused, not re-faulted, every update (heap.py)
+        blas.single_threaded()  # no spinning BLAS threads beside the engine's own (blas.py)
         self._raster = raster
         self._gl = None  # GLBackend on the rasteriser's context, made on first use
         # Incremental updates: propagated grids per light, valid while the scene key holds.

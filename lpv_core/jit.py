@@ -6,7 +6,10 @@ the same input and compare. Kernels are compiled single-threaded with the GIL re
 (``nogil``), so a stage splits its work over ordinates' thread pool where that pays and the
 live viewport's worker thread never meets a numba threading layer. Compiled code is cached on
 disk (numba's cache: ``__pycache__`` beside the module, or NUMBA_CACHE_DIR), so only the first
-run on a machine pays the compile.
+run on a machine pays the compile. Numba checks only the kernel's own file for changes: a
+kernel calling one from another module (sweep's fused kernel calls ordinates' launch) keeps
+its cached copy of the callee until its own file changes; an installed release replaces every
+file, and during development ``find . -name '*.nbi' -delete`` clears the cache.
 
 LPV_JIT=0 in the environment turns the kernels off (pure numpy).
 """

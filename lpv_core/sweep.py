@@ -533,16 +533,18 @@ def fold(light: np.ndarray, r: int, coefficients: int, part: str = "interior") -
 
 @jit.kernel
 def _split_fold_kernel(m, r, values, shell, i0, i1):  # pragma: no cover - compiled
-    """Padded slabs i0..i1-1 of the folded light m (9, 3, (R+2)^3) (bands 0-2 per colour and
-    padded cell) into ``values`` (R, R, R, 3, 9) for interior cells and, when ``shell`` has
-    cells, bands 0-1 of shell cells into ``shell`` (R+2, R+2, R+2, 3, 4) (its interior left as
-    it is). Pure copies: the layout change ``fold``'s transposes make, in one pass."""
+    """Padded slabs i0..i1-1 of the folded light m (9, 3, cells of those slabs) (bands 0-2 per
+    colour and padded cell) into ``values`` (R, R, R, 3, 9) for interior cells and, when
+    ``shell`` has cells, bands 0-1 of shell cells into ``shell`` (R+2, R+2, R+2, 3, 4) (its
+    interior left as it is). Pure copies: the layout change ``fold``'s transposes make, in one
+    pass."""
     p = r + 2
     has_shell = shell.shape[0] > 0
+    first = i0 * p * p
     for i in range(i0, i1):
         for j in range(p):
             for k in range(p):
-                c = (i * p + j) * p + k
+                c = (i * p + j) * p + k - first
                 if 0 < i < p - 1 and 0 < j < p - 1 and 0 < k < p - 1:
                     for col in range(3):
                         for t in range(9):
@@ -553,21 +555,37 @@ def _split_fold_kernel(m, r, values, shell, i0, i1):  # pragma: no cover - compi
                             shell[i, j, k, col, t] = m[t, col, c]
 
 
+def _basis2() -> np.ndarray:
+    """The band 0-2 basis of the directions, transposed (9, q) float32 (cached)."""
+    dirs = ordinates.tables()[0]
+    key = ("basis2", len(dirs))
+    if key not in _DIRECTION_TABLES:
+        _DIRECTION_TABLES[key] = np.ascontiguousarray(
+            sh.evaluate_basis2(dirs).astype(np.float32).T)
+    return _DIRECTION_TABLES[key]
+
+
 def fold_parts(light: np.ndarray, r: int, shell: bool) -> tuple:
     """(``fold(light, r, 9)``, ``fold(light, r, 4, "shell")`` or None): the lookup's grid and
     the outflow from one product with the band 0-2 basis (its first 4 columns are the
     4-moment basis), split by a compiled copy when ``jit.enabled()`` (32^3 Cornell box:
-    16.5 ms for the two folds, about 7 ms this way)."""
+    16.5 ms for the two folds, about 7 ms this way). The slabs go in two halves on the pool,
+    each its own products (BLAS runs single-threaded in the engine's process: blas.py)."""
     if not jit.enabled():
         return fold(light, r, sh.BANDS2), (fold(light, r, 4, "shell") if shell else None)
-    dirs = ordinates.tables()[0]
-    basis = sh.evaluate_basis2(dirs).astype(np.float32)
-    q, p = light.shape[0], r + 2
-    m = (basis.T @ light.reshape(q, -1)).reshape(sh.BANDS2, 3, p**3)
+    basis = _basis2()
+    p = r + 2
     values = np.empty((r, r, r, 3, sh.BANDS2), np.float32)
     outflow = np.zeros((p, p, p, 3, 4) if shell else (0, 0, 0, 3, 4), np.float32)
+
+    def part(slabs):
+        lo, hi = slabs[0] * p * p, slabs[1] * p * p
+        m = np.empty((sh.BANDS2, 3, hi - lo), np.float32)
+        for col in range(3):
+            np.matmul(basis, light[:, col, lo:hi], out=m[:, col])
+        _split_fold_kernel(m, r, values, outflow, *slabs)
+
     half = p // 2
-    for _ in ordinates._pool().map(lambda sl: _split_fold_kernel(m, r, values, outflow, *sl),
-                                   ((0, half), (half, p))):
+    for _ in ordinates._pool().map(part, ((0, half), (half, p))):
         pass
     return values, (outflow if shell else None)
