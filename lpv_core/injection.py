@@ -153,83 +153,161 @@ def _inject_compiled(grid: Grid, positions, normals, flux, offset_cells, visibil
 
 
 @jit.kernel
+def _splat_add(acc, j, wk, v0, v1, v2, v3, v4, v5, v6, v7, v8, v9, v10, v11):
+    """acc[j] += wk x (v0..v11): one corner's 12 sums, each value kept in a register."""
+    acc[j, 0] += wk * v0
+    acc[j, 1] += wk * v1
+    acc[j, 2] += wk * v2
+    acc[j, 3] += wk * v3
+    acc[j, 4] += wk * v4
+    acc[j, 5] += wk * v5
+    acc[j, 6] += wk * v6
+    acc[j, 7] += wk * v7
+    acc[j, 8] += wk * v8
+    acc[j, 9] += wk * v9
+    acc[j, 10] += wk * v10
+    acc[j, 11] += wk * v11
+
+
+@jit.kernel
 def _splat_kernel(pos, nrm, flux, origin, cell_size, shift, r, vis, use_vis, acc, lo, hi):
     """VPLs lo..hi-1 added to ``acc`` (R^3, 12) float64: trilinear_corners, visible_corners
     (same tie tolerance, clip and all-hidden rule) and the cosine lobe x flux / pi, per VPL.
 
     A VPL with all 8 corners outside the grid (or a non-finite position) adds nothing, as its
     zero weights do in numpy; it is skipped before its cell index is made an integer. Corners
-    outside are skipped too (numpy adds 0 x value to cell 0: the same unless flux is inf/NaN)."""
+    outside are skipped too (numpy adds 0 x value to cell 0: the same unless flux is inf/NaN).
+    Everything per VPL is a scalar (corner k = 4 dx + 2 dy + dz), so it stays in registers;
+    each product and sum is the numpy path's, in its order (the same float64 bits)."""
     c0 = _C0
     c1 = _C1
-    base = np.empty(3, np.int64)
-    frac = np.empty(3, np.float64)
-    fac = np.ones((3, 2), np.float64)  # per axis: visibility factor of the corner at +0, +1
-    near = np.empty(3, np.int64)
-    w = np.empty(8, np.float64)
-    seen = np.empty(8, np.float64)
-    idx = np.empty(8, np.int64)
-    vals = np.empty(12, np.float64)
+    top = r - 1.0
+    rr = r * r
+    ox = origin[0]
+    oy = origin[1]
+    oz = origin[2]
     for i in range(lo, hi):
-        skip = False
-        for a in range(3):
-            c = (pos[i, a] + nrm[i, a] * shift - origin[a]) / cell_size - 0.5
-            b = np.floor(c)
-            if not (b >= -1.0 and b <= r - 1.0):  # both corners outside (or NaN)
-                skip = True
-                break
-            base[a] = np.int64(b)
-            frac[a] = c - b
-        if skip:
+        nx = nrm[i, 0]
+        ny = nrm[i, 1]
+        nz = nrm[i, 2]
+        cx = (pos[i, 0] + nx * shift - ox) / cell_size - 0.5
+        cy = (pos[i, 1] + ny * shift - oy) / cell_size - 0.5
+        cz = (pos[i, 2] + nz * shift - oz) / cell_size - 0.5
+        fbx = np.floor(cx)
+        fby = np.floor(cy)
+        fbz = np.floor(cz)
+        # Both corners of an axis outside (or NaN): nothing of this VPL lands in the grid.
+        if not (fbx >= -1.0 and fbx <= top and fby >= -1.0 and fby <= top
+                and fbz >= -1.0 and fbz <= top):
             continue
-        total_w = 0.0
-        k = 0
-        for dx in range(2):
-            ix = base[0] + dx
-            wx = frac[0] if dx else 1.0 - frac[0]
-            for dy in range(2):
-                iy = base[1] + dy
-                wy = frac[1] if dy else 1.0 - frac[1]
-                for dz in range(2):
-                    iz = base[2] + dz
-                    wz = frac[2] if dz else 1.0 - frac[2]
-                    if 0 <= ix < r and 0 <= iy < r and 0 <= iz < r:
-                        idx[k] = (ix * r + iy) * r + iz
-                        w[k] = wx * wy * wz
-                    else:
-                        idx[k] = -1
-                        w[k] = 0.0
-                    total_w += w[k]
-                    k += 1
+        bx = np.int64(fbx)
+        by = np.int64(fby)
+        bz = np.int64(fbz)
+        fx = cx - fbx
+        fy = cy - fby
+        fz = cz - fbz
+        gx = 1.0 - fx
+        gy = 1.0 - fy
+        gz = 1.0 - fz
+        # Corner inside per axis and side (b >= -1 and b <= r - 1 hold here).
+        x0 = bx >= 0
+        x1 = bx < r - 1
+        y0 = by >= 0
+        y1 = by < r - 1
+        z0 = bz >= 0
+        z1 = bz < r - 1
+        i0 = x0 and y0 and z0
+        i1 = x0 and y0 and z1
+        i2 = x0 and y1 and z0
+        i3 = x0 and y1 and z1
+        i4 = x1 and y0 and z0
+        i5 = x1 and y0 and z1
+        i6 = x1 and y1 and z0
+        i7 = x1 and y1 and z1
+        w00 = gx * gy
+        w01 = gx * fy
+        w10 = fx * gy
+        w11 = fx * fy
+        w0 = w00 * gz if i0 else 0.0
+        w1 = w00 * fz if i1 else 0.0
+        w2 = w01 * gz if i2 else 0.0
+        w3 = w01 * fz if i3 else 0.0
+        w4 = w10 * gz if i4 else 0.0
+        w5 = w10 * fz if i5 else 0.0
+        w6 = w11 * gz if i6 else 0.0
+        w7 = w11 * fz if i7 else 0.0
         if use_vis:
-            flat_cell = 0
-            for a in range(3):
-                near[a] = 1 if frac[a] > 0.5 + 1e-3 else 0
-                flat_cell = flat_cell * r + min(max(base[a] + near[a], 0), r - 1)
-            for a in range(3):  # step from the nearest cell to the corner at +0 / +1: -1, 0, +1
-                fac[a, 0] = np.float64(vis[2 * a + 1, flat_cell]) if near[a] else 1.0
-                fac[a, 1] = 1.0 if near[a] else np.float64(vis[2 * a, flat_cell])
-            total = 0.0
-            k = 0
-            for dx in range(2):
-                for dy in range(2):
-                    for dz in range(2):
-                        seen[k] = w[k] * (fac[0, dx] * fac[1, dy] * fac[2, dz])
-                        total += seen[k]
-                        k += 1
+            total_w = 0.0 + w0 + w1 + w2 + w3 + w4 + w5 + w6 + w7
+            nearx = fx > 0.5 + 1e-3
+            neary = fy > 0.5 + 1e-3
+            nearz = fz > 0.5 + 1e-3
+            cell = ((min(max(bx + nearx, 0), r - 1) * r + min(max(by + neary, 0), r - 1)) * r
+                    + min(max(bz + nearz, 0), r - 1))
+            # Visibility factor per axis of the corner at +0 / +1: the step from the nearest
+            # cell to it is -1, 0 or +1.
+            ax0 = np.float64(vis[1, cell]) if nearx else 1.0
+            ax1 = 1.0 if nearx else np.float64(vis[0, cell])
+            ay0 = np.float64(vis[3, cell]) if neary else 1.0
+            ay1 = 1.0 if neary else np.float64(vis[2, cell])
+            az0 = np.float64(vis[5, cell]) if nearz else 1.0
+            az1 = 1.0 if nearz else np.float64(vis[4, cell])
+            a00 = ax0 * ay0
+            a01 = ax0 * ay1
+            a10 = ax1 * ay0
+            a11 = ax1 * ay1
+            s0 = w0 * (a00 * az0)
+            s1 = w1 * (a00 * az1)
+            s2 = w2 * (a01 * az0)
+            s3 = w3 * (a01 * az1)
+            s4 = w4 * (a10 * az0)
+            s5 = w5 * (a10 * az1)
+            s6 = w6 * (a11 * az0)
+            s7 = w7 * (a11 * az1)
+            total = 0.0 + s0 + s1 + s2 + s3 + s4 + s5 + s6 + s7
             if total > 0.0:  # else every corner is hidden: plain trilinear weights
                 scale = total_w / total
-                for k in range(8):
-                    w[k] = seen[k] * scale
-        for ch in range(3):
-            f = flux[i, ch] / np.pi
-            vals[4 * ch] = f * c0
-            vals[4 * ch + 1] = f * (c1 * -nrm[i, 1])
-            vals[4 * ch + 2] = f * (c1 * nrm[i, 2])
-            vals[4 * ch + 3] = f * (c1 * -nrm[i, 0])
-        for k in range(8):
-            j = idx[k]
-            if j >= 0:
-                wk = w[k]
-                for m in range(12):
-                    acc[j, m] += wk * vals[m]
+                w0 = s0 * scale
+                w1 = s1 * scale
+                w2 = s2 * scale
+                w3 = s3 * scale
+                w4 = s4 * scale
+                w5 = s5 * scale
+                w6 = s6 * scale
+                w7 = s7 * scale
+        # Cosine lobe x flux / pi: per colour (c0, -c1 y, c1 z, -c1 x).
+        l1 = c1 * -ny
+        l2 = c1 * nz
+        l3 = c1 * -nx
+        fr = flux[i, 0] / np.pi
+        fg = flux[i, 1] / np.pi
+        fb = flux[i, 2] / np.pi
+        v0 = fr * c0
+        v1 = fr * l1
+        v2 = fr * l2
+        v3 = fr * l3
+        v4 = fg * c0
+        v5 = fg * l1
+        v6 = fg * l2
+        v7 = fg * l3
+        v8 = fb * c0
+        v9 = fb * l1
+        v10 = fb * l2
+        v11 = fb * l3
+        j = np.uint64((bx * r + by) * r + bz)  # corner 0 (only used for corners inside)
+        if i0:
+            _splat_add(acc, j, w0, v0, v1, v2, v3, v4, v5, v6, v7, v8, v9, v10, v11)
+        if i1:
+            _splat_add(acc, j + 1, w1, v0, v1, v2, v3, v4, v5, v6, v7, v8, v9, v10, v11)
+        if i2:
+            _splat_add(acc, j + r, w2, v0, v1, v2, v3, v4, v5, v6, v7, v8, v9, v10, v11)
+        if i3:
+            _splat_add(acc, j + r + 1, w3, v0, v1, v2, v3, v4, v5, v6, v7, v8, v9, v10, v11)
+        if i4:
+            _splat_add(acc, j + rr, w4, v0, v1, v2, v3, v4, v5, v6, v7, v8, v9, v10, v11)
+        if i5:
+            _splat_add(acc, j + rr + 1, w5, v0, v1, v2, v3, v4, v5, v6, v7, v8, v9, v10, v11)
+        if i6:
+            _splat_add(acc, j + rr + r, w6, v0, v1, v2, v3, v4, v5, v6, v7, v8, v9, v10, v11)
+        if i7:
+            _splat_add(acc, j + rr + r + 1, w7, v0, v1, v2, v3, v4, v5, v6, v7, v8, v9, v10,
+                       v11)

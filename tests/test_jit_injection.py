@@ -100,3 +100,15 @@ def test_compiled_inject_empty_and_far():
         with np.errstate(invalid="ignore"):  # numpy's int cast of inf / NaN cell coords
             ref, got = _both(g, pos, nrm, np.ones((4, 3)), v)
         assert not got.any() and not ref.any()
+
+
+@pytest.mark.parametrize("with_vis", [False, True])
+def test_compiled_inject_bit_identical(with_vis):
+    """Same float64 products and sums per VPL and corner as numpy: identical output, for VPLs
+    inside the grid (all 8 corners in) and at its border (some corners out)."""
+    rng = np.random.default_rng(7 + with_vis)
+    g = Grid((0.5, -1.0, 0.25), 0.2, 12)
+    vis = _visibility(12, rng) if with_vis else None
+    for n in (500, 20000):
+        ref, got = _both(g, *_vpls(g, n, rng), vis)
+        assert np.array_equal(ref, got)
