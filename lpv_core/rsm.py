@@ -108,7 +108,7 @@ def _vpls(light: Light, view: lights_mod.LightView, p4, n4, r4, origin) -> tuple
     out = (np.empty((size * size, 3)), np.empty((size * size, 3)), np.empty((size * size, 3)),
            np.empty(size * size))
     # The rows in two parts of equal covered texels, on two threads (the kernel releases the
-    # GIL): Cornell box spot RSM, 256^2, 1.6 -> ~0.9 ms; the second part's VPLs then move
+    # GIL): Cornell box spot RSM, 256^2, 1.6-2.5 -> 1.2-1.4 ms; the second part's VPLs then move
     # down behind the first part's.
     covered = np.cumsum(np.count_nonzero(p4[..., 3] > 0.5, axis=1))
     half = min(max(int(np.searchsorted(covered, covered[-1] / 2.0)), 1), size - 1)
