@@ -82,14 +82,25 @@ def unfold(values: np.ndarray) -> np.ndarray:
     cells = cells.reshape(-1, 4)
     out = np.zeros((len(dirs), cells.shape[0]), np.float32)
     lit = np.flatnonzero(cells[:, 0] > 0)
-    if lit.size and jit.enabled():
-        _unfold_compiled(cells, lit, lit, dirs, out)
-    elif lit.size:
-        held, mean_cos, d = closure.moments(cells[lit])
-        w = closure.emission_density(mean_cos[None, :], dirs @ d.T).astype(np.float32)
-        w = np.where(w.sum(axis=0) > 0, w, np.float32(1.0))
-        out[:, lit] = w * (held / w.sum(axis=0)).astype(np.float32)[None, :]
+    _unfold_rows(cells, lit, lit, out)
     return out.reshape(len(dirs), 3, *shape)
+
+
+def _unfold_rows(cells: np.ndarray, rows: np.ndarray, dest: np.ndarray,
+                 out: np.ndarray) -> None:
+    """out[:, dest] = the flux per direction of the moments cells[rows] (rows (n, 4) with band
+    0 > 0): closure.moments, then emission_density normalised to each row's flux. Compiled
+    when ``jit.enabled()`` (_unfold_compiled), else numpy; what unfold and unfold_sparse run."""
+    if rows.size == 0:
+        return
+    dirs = tables()[0]
+    if jit.enabled():
+        _unfold_compiled(cells, rows, dest, dirs, out)
+        return
+    held, mean_cos, d = closure.moments(cells[rows])
+    w = closure.emission_density(mean_cos[None, :], dirs @ d.T).astype(np.float32)
+    w = np.where(w.sum(axis=0) > 0, w, np.float32(1.0))
+    out[:, dest] = w * (held / w.sum(axis=0)).astype(np.float32)[None, :]
 
 
 def unfold_sparse(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -107,13 +118,7 @@ def unfold_sparse(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     i, j, k = np.unravel_index(cell, (r, r, r))
     index = colour * p**3 + ((i + 1) * p + j + 1) * p + k + 1
     flux = np.zeros((len(dirs), rows.size), np.float32)
-    if rows.size and jit.enabled():
-        _unfold_compiled(cells, rows, np.arange(rows.size), dirs, flux)
-    elif rows.size:
-        held, mean_cos, d = closure.moments(cells[rows])
-        w = closure.emission_density(mean_cos[None, :], dirs @ d.T).astype(np.float32)
-        w = np.where(w.sum(axis=0) > 0, w, np.float32(1.0))
-        flux[:] = w * (held / w.sum(axis=0)).astype(np.float32)[None, :]
+    _unfold_rows(cells, rows, np.arange(rows.size), flux)
     return index, flux
 
 
