@@ -731,21 +731,26 @@ def combine(grid: Grid, per_light: dict, lights, intensity: float) -> np.ndarray
     """The LPV: sum of per-light propagated grids x light weight, x global intensity.
     Propagation is linear, so art-direction changes (GI intensity, tint, global intensity)
     re-combine cached grids without recomputing them."""
-    held = [v for v in per_light.values() if v is not None]
-    combined = grid.zeros(held[0].shape[-1] if held else 4)
-    k = combined.shape[-1]
+    values = [v for v in per_light.values() if v is not None]
+    k = values[0].shape[-1] if values else 4
+    held = [light for light in lights if per_light.get(light.name) is not None]
+    if not held:
+        return grid.zeros(k)
+    combined = np.empty(grid.shape[:4] + (k,), np.float32)
     flat = combined.reshape(-1, 3 * k)  # colour weights broadcast along the last axis (fast)
-    scratch = np.empty_like(flat)
-    for light in lights:
-        values = per_light.get(light.name)
-        if values is None:
-            continue
+    scratch = None
+    for n, light in enumerate(held):
+        values = per_light[light.name].reshape(flat.shape)
         w = light_weight(light)[:, 0] * np.float32(intensity)
+        # the first light written straight into the result (no zero fill, no scratch pass)
+        out = flat if n == 0 else (scratch if scratch is not None else np.empty_like(flat))
         if w[0] == w[1] == w[2]:  # an untinted light: one scalar (3x faster than per colour)
-            np.multiply(values.reshape(flat.shape), w[0], out=scratch)
+            np.multiply(values, w[0], out=out)
         else:
-            np.multiply(values.reshape(flat.shape), np.repeat(w, k), out=scratch)
-        flat += scratch
+            np.multiply(values, np.repeat(w, k), out=out)
+        if n:
+            scratch = out
+            flat += scratch
     return combined
 
 
