@@ -562,7 +562,7 @@ class _ChainRun:
         last = len(chain) - 1
         n = positions.shape[0]
         level = cascades.assign(chain, positions) if last else np.zeros(n, np.int64)
-        totals = [g.zeros(propagation.coefficients(settings.angular)) for g in chain]
+        totals = [None] * len(chain)  # zeros only where nothing lands (filled at the end)
         for group in direction_groups(normals, settings.direction_groups):
             idx = np.arange(n)[group]
             carry = None
@@ -595,9 +595,13 @@ class _ChainRun:
                 self.iterations.append("sweep" if getattr(prop, "swept", False)
                                        else prop.iterations)
                 with Timer(stats, "combine"):
-                    totals[c] += prop.values
+                    if totals[c] is None:  # a copy: the backend may hold on to its result
+                        totals[c] = np.array(prop.values, np.float32)
+                    else:
+                        totals[c] += prop.values
                 carry = prop.outflow
-        return totals
+        coefficients = propagation.coefficients(settings.angular)
+        return [g.zeros(coefficients) if t is None else t for g, t in zip(chain, totals)]
 
 
 def _vpl_sample(rsm) -> tuple[np.ndarray, np.ndarray]:
