@@ -573,8 +573,8 @@ class _ChainRun:
                 if sel.size == n:  # all of them, in order (one cascade, one group): no copies
                     sel = slice(None)
                 with Timer(stats, "injection"):
-                    injected = _inject(be, g, positions[sel], normals[sel], flux[sel],
-                                       self.visibilities[c])
+                    injected = _inject(be, g, positions, normals, flux, self.visibilities[c],
+                                       sel)
                     passing = None
                     if carry is not None:  # light leaving the finer cascade: no surface's
                         passing = g.zeros()
@@ -672,11 +672,17 @@ def light_key(light) -> tuple:
             bool(light.cast_shadow))
 
 
-def _inject(backend, grid: Grid, positions, normals, flux, visibility):
-    """The backend's injection (occlusion-aware splat when there are occluders)."""
-    if visibility is None:
-        return backend.inject(grid, positions, normals, flux)
-    return backend.inject(grid, positions, normals, flux, visibility=visibility)
+def _inject(backend, grid: Grid, positions, normals, flux, visibility, sel=slice(None)):
+    """The backend's injection (occlusion-aware splat when there are occluders) of the VPL
+    rows ``sel`` (a slice, or an index array the numpy backend reads in place: three
+    gathered copies cost ~1.3 ms per 3 x 32^3 Cornell box update)."""
+    kw = {} if visibility is None else {"visibility": visibility}
+    if isinstance(sel, slice):
+        return backend.inject(grid, positions[sel], normals[sel], flux[sel], **kw)
+    if backend is NUMPY_BACKEND:
+        return backend.inject(grid, positions, normals, flux, index=sel, **kw)
+    return backend.inject(grid, *(np.take(a, sel, axis=0) for a in (positions, normals, flux)),
+                          **kw)
 
 
 def direction_groups(normals: np.ndarray, groups: int) -> list:

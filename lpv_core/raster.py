@@ -65,6 +65,45 @@ void main() {
 """
 
 
+# The reflective shadow map's own pass: position and normal only, and the triangle's index
+# (gl_PrimitiveID, split into two exactly representable floats) instead of a reflectance target:
+# two targets instead of four, measured 2.5 -> 1.6 ms for a 256^2 map on llvmpipe. Position and
+# normal are the main pass's expressions (the same bits); the reflectance comes from the
+# uploaded per-triangle table (the main pass's target interpolates it: 0.8 reads 0.79999995).
+RSM_VERTEX_SHADER = """
+#version 330
+uniform mat4 view_proj;
+in vec3 in_pos;
+in vec3 in_nrm;
+out vec3 v_pos;
+out vec3 v_nrm;
+void main() {
+    v_pos = in_pos;
+    v_nrm = in_nrm;
+    gl_Position = view_proj * vec4(in_pos, 1.0);
+}
+"""
+
+RSM_FRAGMENT_SHADER = """
+#version 330
+uniform vec3 eye;
+uniform vec3 view_dir;
+uniform int ortho;
+in vec3 v_pos;
+in vec3 v_nrm;
+layout(location = 0) out vec4 o_pos;  // w: 1 + triangle index / 2^24 (coverage: w > 0.5)
+layout(location = 1) out vec4 o_nrm;  // w: triangle index % 2^24
+void main() {
+    vec3 n = normalize(v_nrm);
+    vec3 to_eye = ortho == 1 ? -view_dir : eye - v_pos;
+    if (dot(n, to_eye) < 0.0) n = -n;
+    o_pos = vec4(v_pos, float(1 + (gl_PrimitiveID >> 24)));
+    o_nrm = vec4(n, float(gl_PrimitiveID & 0xFFFFFF));
+}
+"""
+TRIANGLE_SPLIT = 1 << 24  # the RSM pass's triangle index = (pos.w - 1) x this + nrm.w
+
+
 def gl_context():
     """The process's standalone moderngl context (EGL headless, else the platform default)."""
     global _CTX
@@ -112,11 +151,17 @@ class Rasterizer:
         self.program = self.ctx.program(
             vertex_shader=VERTEX_SHADER, fragment_shader=FRAGMENT_SHADER
         )
+        self.rsm_program = self.ctx.program(
+            vertex_shader=RSM_VERTEX_SHADER, fragment_shader=RSM_FRAGMENT_SHADER
+        )
         self._vao = None
+        self._rsm_vao = None
         self._vbo = None
         self._key = None
         self._fbos: dict = {}
         self.origin = np.zeros(3)
+        # (T, 3) float32 GI reflectance per uploaded triangle: what read_rsm's indices select
+        self.reflectance = np.zeros((0, 3), np.float32)
 
     def upload(self, positions, normals, albedo, reflectance, key=None, receiver=None,
                origin=None) -> None:
@@ -150,23 +195,61 @@ class Rasterizer:
                 [(self._vbo, "3f 3f 3f 3f 1f", "in_pos", "in_nrm", "in_alb", "in_refl",
                   "in_recv")],
             )
+            self._rsm_vao = self.ctx.vertex_array(
+                self.rsm_program, [(self._vbo, "3f 3f 28x", "in_pos", "in_nrm")])
+        self.reflectance = np.ascontiguousarray(data[:, 0, 9:12])
         self._key = key
 
     def release_geometry(self) -> None:
-        for obj in (self._vao, self._vbo):
+        for obj in (self._vao, self._rsm_vao, self._vbo):
             if obj is not None:
                 obj.release()
-        self._vao = self._vbo = None
+        self._vao = self._rsm_vao = self._vbo = None
+        self.reflectance = np.zeros((0, 3), np.float32)
         self._key = None
 
-    def _fbo(self, width: int, height: int):
-        fbo = self._fbos.get((width, height))
+    def _fbo(self, width: int, height: int, targets: int = 4):
+        """The framebuffer of ``targets`` RGBA float32 colour targets and a depth buffer."""
+        fbo = self._fbos.get((width, height, targets))
         if fbo is None:
-            colors = [self.ctx.texture((width, height), 4, dtype="f4") for _ in range(4)]
+            colors = [self.ctx.texture((width, height), 4, dtype="f4") for _ in range(targets)]
             depth = self.ctx.depth_renderbuffer((width, height))
             fbo = self.ctx.framebuffer(color_attachments=colors, depth_attachment=depth)
-            self._fbos[(width, height)] = fbo
+            self._fbos[(width, height, targets)] = fbo
         return fbo
+
+    def _draw(self, program, vao, fbo, view, projection, ortho: bool) -> None:
+        """Clear ``fbo`` and draw the uploaded triangles into it with ``program`` (its
+        view_proj, eye, view_dir and ortho uniforms set from the view; vertices are relative to
+        ``self.origin``)."""
+        view = np.asarray(view, np.float64)
+        inv_view = np.linalg.inv(view)
+        eye = inv_view[:3, 3]
+        view_dir = -inv_view[:3, 2]
+        # Translate the view so that it works on origin-relative vertices.
+        shift = np.eye(4)
+        shift[:3, 3] = self.origin
+        view_proj = np.asarray(projection, np.float64) @ view @ shift
+        fbo.use()
+        fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
+        if vao is None:
+            return
+        import moderngl
+
+        self.ctx.enable(moderngl.DEPTH_TEST)
+        self.ctx.disable(moderngl.CULL_FACE)
+        program["view_proj"].write(view_proj.T.astype(np.float32).tobytes())
+        program["eye"].value = tuple((eye - self.origin).astype(np.float32))
+        program["view_dir"].value = tuple(view_dir.astype(np.float32))
+        program["ortho"].value = int(ortho)
+        vao.render()
+
+    @staticmethod
+    def _targets(fbo, targets, width: int, height: int) -> list[np.ndarray]:
+        """Colour targets ``targets`` of ``fbo`` read back as float32 (H, W, 4), rows
+        top-first (views of the readback: GL's first row is the bottom)."""
+        return [np.frombuffer(fbo.color_attachments[t].read(), np.float32)
+                .reshape(height, width, 4)[::-1] for t in targets]
 
     def read(
         self,
@@ -180,34 +263,30 @@ class Rasterizer:
         """Rasterise and read back the render targets ``targets`` (0 position, 1 normal,
         2 albedo + receiver flag, 3 reflectance) as float32 (H, W, 4), rows top-first (views
         of the readback), positions relative to ``self.origin``; coverage is position's w."""
-        view = np.asarray(view, np.float64)
-        inv_view = np.linalg.inv(view)
-        eye = inv_view[:3, 3]
-        view_dir = -inv_view[:3, 2]
-        # Translate the view so that it works on origin-relative vertices.
-        shift = np.eye(4)
-        shift[:3, 3] = self.origin
-        view_proj = np.asarray(projection, np.float64) @ view @ shift
-        fbo = self._fbo(width, height)
-        fbo.use()
-        fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
         if self._vao is not None:
-            import moderngl
-
-            self.ctx.enable(moderngl.DEPTH_TEST)
-            self.ctx.disable(moderngl.CULL_FACE)
-            self.program["view_proj"].write(view_proj.T.astype(np.float32).tobytes())
-            self.program["eye"].value = tuple((eye - self.origin).astype(np.float32))
-            self.program["view_dir"].value = tuple(view_dir.astype(np.float32))
-            self.program["ortho"].value = int(ortho)
             # Positions were uploaded relative to origin; the shader's origin uniform is 0.
             self.program["origin"].value = (0.0, 0.0, 0.0)
-            self._vao.render()
-        out = []
-        for t in targets:
-            a = np.frombuffer(fbo.color_attachments[t].read(), np.float32)
-            out.append(a.reshape(height, width, 4)[::-1])  # GL's first row is the bottom
-        return out
+        fbo = self._fbo(width, height)
+        self._draw(self.program, self._vao, fbo, view, projection, ortho)
+        return self._targets(fbo, targets, width, height)
+
+    def read_rsm(self, view: np.ndarray, projection: np.ndarray, size: int,
+                 ortho: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """A reflective shadow map's two targets as float32 (size, size, 4), rows top-first:
+        position relative to ``self.origin`` and the normal facing the viewer, as ``read``
+        gives them, their w the triangle index (``triangles``); coverage is position's w > 0.5.
+        A pass of its own with two targets instead of four (RSM_FRAGMENT_SHADER)."""
+        fbo = self._fbo(size, size, 2)
+        self._draw(self.rsm_program, self._rsm_vao, fbo, view, projection, ortho)
+        pos, nrm = self._targets(fbo, (0, 1), size, size)
+        return pos, nrm
+
+    @staticmethod
+    def triangles(pos: np.ndarray, nrm: np.ndarray) -> np.ndarray:
+        """Triangle index (int64, same shape) of covered texels of read_rsm's ``pos``, ``nrm``
+        (or rows of them, (..., 4)); meaningless where not covered."""
+        high = pos[..., 3].astype(np.int64) - 1
+        return high * TRIANGLE_SPLIT + nrm[..., 3].astype(np.int64)
 
     def render(
         self,
@@ -249,3 +328,4 @@ class Rasterizer:
             fbo.release()
         self._fbos.clear()
         self.program.release()
+        self.rsm_program.release()

@@ -112,3 +112,95 @@ def test_compiled_inject_bit_identical(with_vis):
     for n in (500, 20000):
         ref, got = _both(g, *_vpls(g, n, rng), vis)
         assert np.array_equal(ref, got)
+
+
+def _grid_args(g, pos, nrm, flux, vis):
+    r = g.resolution
+    return (np.ascontiguousarray(pos, np.float64), np.ascontiguousarray(nrm, np.float64),
+            np.ascontiguousarray(flux, np.float64), np.zeros(0, np.int64), g.origin_array,
+            float(g.cell_size), 0.5 * g.cell_size, r, vis.reshape(6, -1), True)
+
+
+def _splat(g, args, boxes):
+    """The compiled splat run box by box into one sum grid (as the threads run the slabs):
+    the float32 grid."""
+    cells = g.resolution ** 3
+    acc, touched = injection._sums(cells)
+    out = np.full((cells, 12), np.nan, np.float32)  # every cell must be written
+    for k, box in enumerate(boxes):
+        injection._splat_box(args, args[0].shape[0], acc, touched, cells + k, box, out)
+    return out
+
+
+def test_compiled_inject_slabs_are_the_one_thread_result():
+    """The two slabs of split_slabs, splatted apart, give the one-box result bit for bit (every
+    cell sums its VPLs in VPL order either way), straddling VPLs included."""
+    rng = np.random.default_rng(8)
+    g = Grid((0.0, -0.5, 0.25), 0.125, 16)
+    pos, nrm, flux = _vpls(g, 30000, rng)
+    args = _grid_args(g, pos, nrm, flux, _visibility(16, rng))
+    halves = injection.split_slabs(*args[:2], *args[4:8])
+    assert halves is not None
+    lo, hi = halves
+    axis = int(np.argmax(lo[:, 1] < 16))
+    assert lo[axis, 1] == hi[axis, 0] and 4 <= lo[axis, 1] <= 12  # random VPLs: near the middle
+    whole = np.array([[0, 16]] * 3, np.int64)
+    one = _splat(g, args, [whole])
+    assert np.array_equal(_splat(g, args, [lo, hi]), one)
+    with jit.disabled():
+        ref = injection.inject(g, pos, nrm, flux, 0.5, args[8].reshape(6, 16, 16, 16))
+    assert np.array_equal(one.reshape(ref.shape), ref)
+
+
+def test_split_slabs_balances_or_declines():
+    """VPLs on one plane x = const: the cut goes across y or z, with about half on each side;
+    VPLs all in one cell (or outside the grid): no cut is worth a thread."""
+    rng = np.random.default_rng(9)
+    g = Grid((0.0, 0.0, 0.0), 1.0, 32)
+    n = 20000
+    pos = np.column_stack([np.full(n, 10.3), rng.random(n) * 32, rng.random(n) * 32])
+    nrm = np.tile([1.0, 0.0, 0.0], (n, 1))
+    lo, hi = injection.split_slabs(pos, nrm, g.origin_array, 1.0, 0.5, 32)
+    axis = int(np.argmax(lo[:, 1] < 32))
+    assert axis in (1, 2) and abs(lo[axis, 1] - 16) <= 2
+    assert np.array_equal(np.delete(lo, axis, 0), np.delete(hi, axis, 0))
+    one_cell = np.tile([5.2, 6.3, 7.4], (n, 1))
+    assert injection.split_slabs(one_cell, nrm, g.origin_array, 1.0, 0.5, 32) is None
+    assert injection.split_slabs(one_cell + 100.0, nrm, g.origin_array, 1.0, 0.5, 32) is None
+
+
+@pytest.mark.parametrize("with_vis", [False, True])
+def test_compiled_inject_32_cubed_two_threads(with_vis):
+    """R = 32 from SPLIT_MIN VPLs (two slabs on two threads), VPLs in texel-like order on two
+    walls and partly outside: the numpy reference to the last bit."""
+    rng = np.random.default_rng(10 + with_vis)
+    g = Grid((-1.0, -1.0, -1.0), 2.0 / 32, 32)
+    n = 2 * injection.SPLIT_MIN
+    u, v = np.meshgrid(np.linspace(-1.1, 1.1, 128), np.linspace(-1.1, 1.1, n // 256))
+    floor = np.column_stack([u.ravel(), np.full(u.size, -0.97), v.ravel()])
+    wall = np.column_stack([np.full(u.size, 0.31), u.ravel(), v.ravel()])
+    pos = np.concatenate([floor, wall])
+    nrm = np.concatenate([np.tile([0.0, 1.0, 0.0], (u.size, 1)),
+                          np.tile([-1.0, 0.0, 0.0], (u.size, 1))])
+    flux = rng.random((n, 3)) + 0.01
+    vis = _visibility(32, rng) if with_vis else None
+    ref, got = _both(g, pos, nrm, flux, vis)
+    assert np.array_equal(ref, got)
+
+
+@pytest.mark.parametrize("n", [300, 3 * injection.SPLIT_MIN])
+def test_compiled_inject_index_reads_rows_in_place(n):
+    """``index`` injects those rows in that order, as the gathered arrays would: the numpy
+    reference of the gathered arrays to the last bit, on one thread and on two."""
+    rng = np.random.default_rng(12)
+    g = Grid((-1.0, 0.5, -2.0), 0.3, 16)
+    pos, nrm, flux = _vpls(g, n, rng)
+    vis = _visibility(16, rng)
+    index = np.sort(rng.choice(n, size=n * 2 // 3, replace=False))
+    index[:5] = index[:5][::-1]  # any order, not only increasing
+    with jit.disabled():
+        ref = injection.inject(g, pos[index], nrm[index], flux[index], 0.5, vis)
+        assert np.array_equal(injection.inject(g, pos, nrm, flux, 0.5, vis, index=index), ref)
+    assert np.array_equal(injection.inject(g, pos, nrm, flux, 0.5, vis, index=index), ref)
+    empty = injection.inject(g, pos, nrm, flux, 0.5, vis, index=index[:0])
+    assert empty.shape == ref.shape and not empty.any()
