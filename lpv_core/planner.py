@@ -28,7 +28,7 @@ from . import cascades as cascades_mod
 from . import geometry_volume, injection, jit
 from . import lights as lights_mod
 from .grid import Grid, fit_grid
-from .scene import Light, Scene
+from .scene import Light, Scene, cross3
 
 # Cells outside a grid's box from which a VPL still reaches its cells (see module docstring):
 # the normal offset of injection.inject plus half a cell of trilinear splat to the cell centre.
@@ -453,12 +453,6 @@ def _clip_to_box(tris: np.ndarray, lo, hi):
     return poly, count
 
 
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """np.cross of two 3-vectors, formed the same way without its per-call overhead."""
-    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2],
-                     a[0] * b[1] - a[1] * b[0]])
-
-
 def _cone_hits(poly: np.ndarray, count: np.ndarray, apex, axis, half: float) -> np.ndarray:
     """(T,) True where convex polygon (T, M, 3) meets the closed cone of half-angle ``half``
     around unit ``axis`` from ``apex``.
@@ -482,9 +476,9 @@ def _cone_hits(poly: np.ndarray, count: np.ndarray, apex, axis, half: float) -> 
     scale = max(float(np.max(np.abs(rel[valid]))) if valid.any() else 1.0, 1e-30)
     offset = -float(axis @ apex) - scale * 2.0 ** -40
     helper = np.array([1.0, 0.0, 0.0]) if abs(axis[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    u = _cross(axis, helper)
+    u = cross3(axis, helper)
     u /= np.linalg.norm(u)
-    w = _cross(axis, u)
+    w = cross3(axis, u)
     if jit.enabled():  # the same per polygon, compiled: no small-array numpy calls
         out = np.zeros(poly.shape[0], bool)
         _cone_hits_kernel(np.ascontiguousarray(poly, np.float64), count.astype(np.int64),
