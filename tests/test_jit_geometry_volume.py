@@ -209,3 +209,160 @@ def test_occluder_volume_runs_match_numpy():
     moved = wall + np.array([0.1, 0.0, 0.0])
     _same(*_both(geometry_volume.occluder_volume, grid, np.concatenate([wall, wall, tilt, moved])))
     _check(grid, np.concatenate([wall, moved, tilt, wall]))
+
+
+# occluder_volume's shortcuts (see geometry_volume's compiled section): a triangle whose
+# sub-triangles all surely go to one plane has its interior filled and only the sub-triangles
+# along edges with samples near them scanned; a triangle surely edge-on to an axis adds no
+# records there; records are scanned over their own window where no sample past it can count;
+# the triangles are cut in chunks shared by two threads. Each must leave the bits as numpy's.
+
+
+def _boxes(rng, grid: Grid, count: int, snap: float) -> np.ndarray:
+    """``count`` axis-aligned boxes (walls: filled planes) in ``grid``, corners snapped to
+    multiples of ``snap`` cells (cell lines 1, half cells 0.5, sample lines 1/8, or 0: none),
+    some moved off them by about the fill's margin."""
+    tris = []
+    r = grid.resolution
+    for _ in range(count):
+        lo = rng.uniform(-0.3 * r, 1.1 * r, 3)
+        hi = lo + rng.uniform(0.3, 1.2 * r, 3)
+        if snap > 0:
+            lo, hi = np.round(lo / snap) * snap, np.round(hi / snap) * snap
+            lo = lo + rng.choice([0.0, 1e-9, 1e-5, -1e-5, 3e-4]) / 8
+        hi = np.maximum(hi, lo + 0.1)
+        tris.append(demo.box_triangles(grid.origin_array + lo * grid.cell_size,
+                                       grid.origin_array + hi * grid.cell_size))
+    return np.concatenate(tris)
+
+
+@pytest.mark.parametrize("snap", [1.0, 0.5, 1 / 8, 1 / 16, 0.0])
+@pytest.mark.parametrize("origin, cell", [((0.0, 0.0, 0.0), 1.0), ((-3.25, 1.5, 1e3), 0.37),
+                                          ((1e4, -2e4, 5e3), 0.1)])
+def test_filled_walls_match_numpy(snap, origin, cell):
+    # Walls on cell lines, half cells (between samples: no scanned edges), sample lines (every
+    # edge within reach of samples), off them by the margin or not at all; near the origin or
+    # far from it (the edge-on test's rounding).
+    rng = np.random.default_rng(int(snap * 16) + int(cell * 100))
+    grid = Grid(origin, cell, 12)
+    tris = _boxes(rng, grid, 4, snap)
+    cover = _check(grid, tris)
+    assert cover.max() == 1.0
+
+
+@pytest.mark.parametrize("tilt", [0.0, 1e-13, 1e-10, 1e-8, 1e-7, 1e-4, 0.3])
+def test_nearly_aligned_walls_match_numpy(tilt):
+    # A wall tilted by ``tilt`` cells across its 10 cells: edge-on to two axes' planes or just
+    # not (offset terms without records, or records: slivers on a row of samples, x = 34.5 / 8
+    # cells), and its plane one or several.
+    grid = Grid((0.0, 0.0, 0.0), 1.0, 12)
+    x = 34.5 / geometry_volume.COVERAGE_SAMPLES
+    wall = np.array([[[x, 1.0, 1.0], [x, 11.0, 1.0], [x + tilt, 11.0, 11.0]],
+                     [[x, 1.0, 1.0], [x + tilt, 11.0, 11.0], [x + tilt, 1.0, 11.0]]])
+    _check(grid, wall)
+    _check(grid, wall + np.array([0.2 - tilt / 2, 0.0, 0.0]))  # (about the tie at 4.5)
+
+
+def test_fill_window_with_slivers_matches_numpy():
+    # Slivers whose tolerance-grown tips reach samples past their own windows count those
+    # samples only inside the largest window any sub-triangle needs: here a filled wall's
+    # interior sub-triangles (no records of their own) set it.
+    rng = np.random.default_rng(3)
+    grid = Grid((0.0, 0.0, 0.0), 1.0, 10)
+    rm = 10 * geometry_volume.COVERAGE_SAMPLES
+    slivers = []
+    for _ in range(300):
+        axis = int(rng.integers(0, 3))
+        plane = rng.integers(0, 11) + rng.uniform(-0.4, 0.4)
+        length = rng.uniform(0.5, 3.0)
+        thin = length * 10 ** rng.uniform(-10, -8)
+        j, row = rng.uniform(-2, rm + 2), float(rng.integers(-1, rm + 1))
+        tip, far = (j + length, j) if rng.random() < 0.5 else (j, j + length)
+        su, sv = np.array([tip, far, far]), np.array([row, row, row + thin])
+        if rng.random() < 0.5:
+            su, sv = sv, su
+        slivers.append(_on_samples(grid, axis, plane, su, sv))
+    # walls 300 cells wide, edges far outside the grid (no records): sub-triangles 4.7 cells
+    # (k = 64), windows of about 37 samples
+    walls = np.concatenate([demo.quad((-150.3, -150.2, 0.4 + z), (150.5, -150.2, 0.4 + z),
+                                      (150.5, 150.6, 0.4 + z), (-150.3, 150.6, 0.4 + z))
+                            for z in (2.0, 6.0)])
+    for tris in (np.array(slivers), np.concatenate([np.array(slivers), walls])):
+        _same(*_both(geometry_volume.occluder_volume, grid, tris))
+
+
+@pytest.mark.parametrize("split", [0, 1, 3, "all"])
+def test_chunks_from_both_ends_match_numpy(monkeypatch, split):
+    # The chunks taken from the back (another thread's) log their offset terms, added after
+    # the front's: every split of the chunks, many triangles on the same faces (the same
+    # walls again, moved a little, in other sizes: other k, other chunks).
+    grid = Grid((0.0, 0.0, 0.0), 1.0, 8)
+    rng = np.random.default_rng(5)
+    base = _boxes(rng, grid, 2, 0.5)
+    tris = np.concatenate([base, base + 0.01, base[::-1] * 1.02, _boxes(rng, grid, 3, 0.0)])
+
+    def split_at(pool, front, back, count):
+        cut = count if split == "all" else min(split, count)
+        for i in range(cut):
+            front(i)
+        for j in range(count - 1, cut - 1, -1):
+            back(j)
+        return list(range(cut, count))
+
+    with jit.disabled():
+        ref = geometry_volume.occluder_volume(grid, tris)
+    monkeypatch.setattr(geometry_volume, "_front_back", split_at)
+    _same(ref, geometry_volume.occluder_volume(grid, tris))
+
+
+def test_scratch_reuse_matches_numpy(monkeypatch):
+    # The working arrays kept between calls: scenes and resolutions one after another, and
+    # a call broken off midway (its planes not cleared) before the next.
+    grid5, cornell5 = _cornell(5)
+    grid16, cornell16 = _cornell(16)
+    rng = np.random.default_rng(11)
+    walls = _boxes(rng, Grid((0.0, 0.0, 0.0), 1.0, 16), 3, 0.5)
+    for grid, tris in [(grid16, cornell16), (grid5, cornell5), (grid16, walls),
+                       (grid16, cornell16)]:
+        _same(*_both(geometry_volume.occluder_volume, grid, tris))
+
+    def broken(*args):
+        raise RuntimeError("midway")
+
+    monkeypatch.setattr(geometry_volume, "_finish_volume", broken)
+    with pytest.raises(RuntimeError):
+        geometry_volume.occluder_volume(grid16, walls)
+    monkeypatch.undo()
+    _same(*_both(geometry_volume.occluder_volume, grid16, cornell16))
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_random_scenes_match_numpy(seed):
+    # Boxes, large tilted and nearly aligned triangles and slivers, in grids of other sizes,
+    # cells and origins.
+    rng = np.random.default_rng(100 + seed)
+    r = int(rng.choice([4, 7, 12]))
+    cell = float(rng.choice([1.0, 0.37, 1 / 3]))
+    grid = Grid(tuple(rng.choice([0.0, -3.25, 1e3]) * np.array([1.0, 0.5, -1.0])), cell, r)
+    tris = [_boxes(rng, grid, 2, float(rng.choice([1.0, 0.5, 1 / 8, 0.0])))]
+    for _ in range(3):
+        t = rng.uniform(0, r, 3) + rng.uniform(-0.6 * r, 0.6 * r, (3, 3))
+        if rng.random() < 0.5:
+            axis = rng.integers(0, 3)
+            t[:, axis] = t[0, axis] + rng.choice([0.0, 1e-12, 1e-6]) * rng.uniform(-1, 1, 3)
+        tris.append((grid.origin_array + t * cell)[None])
+    tris.append(_random_triangles(rng, r, 20) * cell + grid.origin_array)
+    _check(grid, np.concatenate(tris))
+
+
+@pytest.mark.parametrize("ulps", [-2, -1, 0, 1, 2])
+def test_wall_on_the_plane_rule_matches_numpy(ulps):
+    # An aligned wall where the plane rule (nearest plane, ties down: floor(x + 0.5 - 1e-6))
+    # flips: its sub-triangles' centroids, a few ulps apart, go to either plane; not filled.
+    grid = Grid((0.0, 0.0, 0.0), 1.0, 8)
+    x = np.nextafter(4.5 + 1e-6, 5.0 if ulps > 0 else 4.0) if ulps else 4.5 + 1e-6
+    for _ in range(abs(ulps) - 1):
+        x = np.nextafter(x, 5.0 if ulps > 0 else 4.0)
+    wall = demo.quad((x, 0.7, 0.3), (x, 7.1, 0.3), (x, 7.1, 7.9), (x, 0.7, 7.9))
+    _check(grid, wall)
+    _check(grid, np.ascontiguousarray(wall[:, :, [1, 0, 2]]))  # (across y)
