@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import closure, ordinates, sh
+from . import closure, jit, octants, ordinates, sh
 from . import sweep as transport_sweep
 
 FRONT_SOLID_ANGLE = 4.0 * np.arctan(np.sqrt(11.0) / 33.0)  # 0.4006696846
@@ -72,8 +72,11 @@ def tables(reprojection: str = "kd10"):
 
 
 def flux(grid_values: np.ndarray) -> np.ndarray:
-    """Flux (W) per colour held by a grid (..., 3, 4): the integral of positive band-0 terms."""
-    return np.maximum(grid_values[..., 0], 0.0).reshape(-1, 3).sum(axis=0) * sh.SQRT_4PI
+    """Flux (W) per colour held by a grid (..., 3, 4): the integral of positive band-0 terms.
+    Summed colour by colour over a contiguous copy (numpy's pairwise sum: 32^3, 0.6 ->
+    0.08 ms, and closer to the float64 sum than the column sums it replaced)."""
+    band0 = np.maximum(grid_values[..., 0], 0.0).reshape(-1, 3)
+    return np.ascontiguousarray(band0.T).sum(axis=1) * sh.SQRT_4PI
 
 
 def _shift_add(dst: np.ndarray, src: np.ndarray, axis_index: int) -> None:
@@ -469,12 +472,18 @@ def _sweep_ordinates(injected, visibility, occlude_first_step, capture_outflow, 
     """propagate(angular="dom", sweep=True): A = y + T A solved by sweep.solve, y the first
     step's arrivals (ordinates.launch of ``injected`` with ``launch``), or the unfolded light
     itself when ``occlude_first_step`` (A then less it). With ``launch``, ``passing`` is
-    always the latter; without, it is part of the injected grid."""
+    always the latter; without, it is part of the injected grid. Compiled, the launch's case
+    runs octants.launch_sweep_fold: launch, sweep and fold in one pass per octant."""
     r = injected.shape[0]
     transport_sweep.check_memory(r, capture_outflow)
     shell = capture_outflow
-    offvis = _offset_visibilities(visibility)
     total = injected if passing is None else injected + passing
+    if launch and jit.enabled() and octants.supported():  # all of it in one pass per octant
+        values, outflow = octants.launch_sweep_fold(injected, visibility, passing, shell,
+                                                    occlude_first_step)
+        ordinates.add_emission_band2(values, total)
+        return PropagationResult(values, 0, flux(total), 0.0, False, outflow, swept=True)
+    offvis = _offset_visibilities(visibility)
     if launch:
         acc = transport_sweep.launch_solve(injected, offvis if occlude_first_step else None,
                                            passing, offvis, shell)

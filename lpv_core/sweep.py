@@ -25,7 +25,9 @@ the 2 cores of this machine the many small numpy operations of a plane contended
 With numba (jit.enabled()) ``solve`` runs a compiled kernel instead, on the padded flat layout
 itself: per direction, cell by cell in upwind order (slabs along x, rows along y, the
 recurrence along z), no positions and no hyperplanes; the numpy sweep stays the reference and
-the fallback.
+the fallback. The engine's propagation (launched from surfaces) runs octants.py instead: the
+same recurrence for all directions of an octant at once, launched and folded to SH as it goes
+(``launch_solve`` and ``fold_parts`` compiled remain for other quadratures and the tests).
 """
 
 from __future__ import annotations
@@ -43,8 +45,12 @@ _STACKED: list = []  # [(visibility list or None, R, (rows, (R+2)^3) float32)], 
 
 
 def positions(p: int) -> int:
-    """Positions of a sweep over a p^3 grid: the hyperplanes' bounding squares (~1.67 p^3)."""
-    return sum((min(p - 1, t) + 1 - max(0, t - 2 * (p - 1))) ** 2 for t in range(3 * p - 2))
+    """Positions of a sweep over a p^3 grid: the hyperplanes' bounding squares (~1.67 p^3;
+    cached: every propagation checks its memory)."""
+    if ("positions", p) not in _PLANS:
+        _PLANS["positions", p] = sum((min(p - 1, t) + 1 - max(0, t - 2 * (p - 1))) ** 2
+                                     for t in range(3 * p - 2))
+    return _PLANS["positions", p]
 
 
 def memory_bytes(r: int, shell: bool = True) -> int:
