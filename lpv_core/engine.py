@@ -595,8 +595,10 @@ class _ChainRun:
                 self.iterations.append("sweep" if getattr(prop, "swept", False)
                                        else prop.iterations)
                 with Timer(stats, "combine"):
-                    if totals[c] is None:  # a copy: the backend may hold on to its result
-                        totals[c] = np.array(prop.values, np.float32)
+                    if totals[c] is None:  # a copy where the backend may hold on to it
+                        totals[c] = (np.asarray(prop.values, np.float32)
+                                     if getattr(be, "fresh_results", False)
+                                     else np.array(prop.values, np.float32))
                     else:
                         totals[c] += prop.values
                 carry = prop.outflow
@@ -709,6 +711,7 @@ class NumpyBackend:
     """The reference backend: the numpy functions themselves (see Engine.backend)."""
 
     name = "numpy"
+    fresh_results = True  # propagate returns new arrays, never kept: no copy needed
 
     @staticmethod
     def inject(*args, **kwargs):

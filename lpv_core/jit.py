@@ -12,12 +12,19 @@ its cached copy of the callee until its own file changes; an installed release r
 file, and during development ``find . -name '*.nbi' -delete`` clears the cache.
 
 LPV_JIT=0 in the environment turns the kernels off (pure numpy).
+
+``flush_subnormals()`` runs a block with the calling thread's x86 MXCSR set to flush
+subnormal floats to zero (FTZ) and read them as zero (DAZ), restoring it after: light fading
+through occluders in the transport sweep reaches values below float32's normal range
+(1.2e-38), where every arithmetic instruction takes a microcode assist of ~100 cycles
+(measured: the octant sweep's 8 octants at 32^3 took 16.9 ms, 5.2 ms with them flushed).
 """
 
 from __future__ import annotations
 
 import contextlib
 import os
+import platform
 from collections.abc import Callable, Iterator
 
 try:  # optional: the numpy code runs without it
@@ -55,3 +62,65 @@ def kernel(fn: Callable) -> Callable:
     if numba is None:
         return fn
     return numba.njit(cache=True, nogil=True, error_model="numpy")(fn)
+
+
+X86 = platform.machine().lower() in {"x86_64", "amd64", "i386", "i686", "x86"}
+FTZ_DAZ = 0x8040  # MXCSR bit 15 (flush to zero) and bit 6 (denormals are zero)
+
+
+def _mxcsr_swap_codegen(typingctx, value, mask):
+    """numba intrinsic (value, mask) -> old MXCSR: the bits under ``mask`` set to value's
+    (llvm.x86.sse.stmxcsr / ldmxcsr on a stack slot)."""
+    from llvmlite import ir
+    from numba.core import cgutils, types
+
+    def codegen(context, builder, sig, args):
+        i32, i8p = ir.IntType(32), ir.IntType(8).as_pointer()
+        slot = cgutils.alloca_once(builder, i32)
+        ptr = builder.bitcast(slot, i8p)
+        fty = ir.FunctionType(ir.VoidType(), [i8p])
+        store = cgutils.get_or_insert_function(builder.module, fty, "llvm.x86.sse.stmxcsr")
+        load = cgutils.get_or_insert_function(builder.module, fty, "llvm.x86.sse.ldmxcsr")
+        builder.call(store, [ptr])
+        old = builder.load(slot)
+        value_, mask_ = (builder.trunc(a, i32) for a in args)
+        new = builder.or_(builder.and_(old, builder.not_(mask_)), builder.and_(value_, mask_))
+        builder.store(new, slot)
+        builder.call(load, [ptr])
+        return builder.zext(old, ir.IntType(64))
+
+    return types.int64(types.int64, types.int64), codegen
+
+
+_SWAP: list = []  # the compiled swap, built at first use (x86 with numba only)
+
+
+def _mxcsr_swap(value: int, mask: int) -> int:
+    """Set the MXCSR bits under ``mask`` to value's in the calling thread; the old MXCSR."""
+    if not _SWAP:
+        from numba.extending import intrinsic
+
+        swap = intrinsic(_mxcsr_swap_codegen)
+
+        @numba.njit(nogil=True)
+        def run(v, m):
+            return swap(v, m)
+
+        _SWAP.append(run)
+    return int(_SWAP[0](value, mask))
+
+
+@contextlib.contextmanager
+def flush_subnormals() -> Iterator[None]:
+    """Run the block in this thread with subnormal floats flushed to zero (module docstring);
+    the thread's previous mode comes back after. Results change by less than float32's
+    smallest normal number (1.2e-38) per operation. A no-op off x86 or without the kernels
+    (the numpy reference keeps IEEE subnormals)."""
+    if not (enabled() and X86):
+        yield
+        return
+    old = _mxcsr_swap(FTZ_DAZ, FTZ_DAZ)
+    try:
+        yield
+    finally:
+        _mxcsr_swap(old, FTZ_DAZ)

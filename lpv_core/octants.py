@@ -778,8 +778,9 @@ def launch_sweep_fold(injected: np.ndarray, visibility: np.ndarray | None,
     def run(w: int) -> None:
         sums[w] = _zero_sums(work)
         ring = _ring(work)
-        for o in shares[w]:
-            _run_octant(work, o, ring, *sums[w])
+        with jit.flush_subnormals():  # light fading behind walls: 3x (jit.py)
+            for o in shares[w]:
+                _run_octant(work, o, ring, *sums[w])
 
     for _ in ordinates._pool().map(run, range(len(shares))):
         pass  # iterating re-raises a worker's exception here

@@ -451,8 +451,9 @@ def _solve_compiled(source: np.ndarray, r: int, offset_visibility: list | None,
     lo, hi = (0, p) if shell else (1, p - 1)
 
     def run(span):
-        _sweep_kernel(y, out, vis, tab["sign"], tab["weight"], koff, tab["inv"],
-                      tab["offsets"], p, lo, hi, span[0], span[1])
+        with jit.flush_subnormals():  # light fading behind walls (jit.py)
+            _sweep_kernel(y, out, vis, tab["sign"], tab["weight"], koff, tab["inv"],
+                          tab["offsets"], p, lo, hi, span[0], span[1])
 
     for _ in ordinates._pool().map(run, tab["octants"]):
         pass  # iterating re-raises an octant's exception here
@@ -490,8 +491,10 @@ def launch_solve(injected: np.ndarray, launch_visibility: list | None, passing: 
     out = np.empty((ordinates.DIRECTIONS, 3, p**3), np.float32)
 
     def run(span):
-        _launch_sweep_kernel(*launch, pcol, pcell, flux, out, vis, tab["sign"], tab["weight"],
-                             koff, tab["inv"], tab["offsets"], p, lo, hi, span[0], span[1])
+        with jit.flush_subnormals():  # light fading behind walls (jit.py)
+            _launch_sweep_kernel(*launch, pcol, pcell, flux, out, vis, tab["sign"],
+                                 tab["weight"], koff, tab["inv"], tab["offsets"], p, lo, hi,
+                                 span[0], span[1])
 
     for _ in ordinates._pool().map(run, tab["octants"]):
         pass  # iterating re-raises an octant's exception here
