@@ -1872,6 +1872,11 @@ class MixedBackend:
     def irradiance(self, *args, **kwargs):
         return self._backends[self.stages["lookup"]].irradiance(*args, **kwargs)
 
+    @property
+    def fresh_results(self) -> bool:
+        """Whether propagate's results are new arrays nobody keeps (engine: no copy)."""
+        return getattr(self._backends[self.stages["propagate"]], "fresh_results", False)
+
     @staticmethod
     def discard(obj) -> None:
         if isinstance(obj, GLGrid):
