@@ -776,7 +776,7 @@ def launch_sweep_fold(injected: np.ndarray, visibility: np.ndarray | None,
     sums = [None] * len(shares)
 
     def run(w: int) -> None:
-        sums[w] = _zero_sums(work)
+        sums[w] = _zero_sums(work, w == 0)
         ring = _ring(work)
         with jit.flush_subnormals():  # light fading behind walls: 3x (jit.py)
             for o in shares[w]:
@@ -784,7 +784,9 @@ def launch_sweep_fold(injected: np.ndarray, visibility: np.ndarray | None,
 
     for _ in ordinates._pool().map(run, range(len(shares))):
         pass  # iterating re-raises a worker's exception here
-    _add_up(sums)
+    parts = max(2, len(shares))
+    for _ in ordinates._pool().map(lambda w: _add_part(work, sums, w, parts), range(parts)):
+        pass
     return _finish(work, *sums[0])
 
 
@@ -797,24 +799,68 @@ def _shares(workers: int) -> list:
     return [order[w::workers] for w in range(workers)]
 
 
-def _add_up(sums: list) -> None:
-    """sums[0] += the other workers' sums, in order, the halves of the arrays on the pool's
-    threads."""
-    if len(sums) < 2:
-        return
-    halves = []
-    for part in range(2):
-        for k in range(2):  # values, outflow
-            n = sums[0][k].size
-            halves.append((k, slice(part * n // 2, (part + 1) * n // 2)))
-
-    def add(item) -> None:
-        k, sl = item
+def _add_part(work: dict, sums: list, w: int, parts: int) -> None:
+    """Worker w's part (of ``parts``) of sums[0] += the other workers' sums, in order, less
+    the fold of the handed-on light there (``_take_off_passing``): its share of the values'
+    cells, and of the outflow's slabs only the shell (the rest is 0 in every sum)."""
+    values = sums[0][0]
+    cells = work["r"] ** 3
+    c0, c1 = w * cells // parts, (w + 1) * cells // parts
+    lo, hi = c0 * 3 * sh.BANDS2, c1 * 3 * sh.BANDS2
+    for other in sums[1:]:
+        values[lo:hi] += other[0][lo:hi]
+    _take_off_passing(work, values, c0, c1)
+    if work["shell"] and len(sums) > 1:
+        p = work["p"]
         for other in sums[1:]:
-            sums[0][k][sl] += other[k][sl]
+            _add_shell(sums[0][1], other[1], p, w * p // parts, (w + 1) * p // parts)
 
-    for _ in ordinates._pool().map(add, halves):
-        pass
+
+def _take_off_passing(work: dict, values: np.ndarray, c0: int, c1: int) -> None:
+    """values (flat R^3 3 9) -= the fold of the handed-on light (it is not an arrival) in the
+    grid's flat cells c0..c1-1."""
+    pcell, pcol, pflux, _ = work["passing"]
+    if not pcell.size:
+        return
+    r, p = work["r"], work["p"]
+    i, j, k = np.unravel_index(pcell, (p, p, p))
+    cells = ((i - 1) * r + j - 1) * r + k - 1  # ascending, as pcell
+    e0, e1 = np.searchsorted(cells, (c0, c1))
+    if e0 == e1:
+        return
+    basis = tables()["basis"][:, :B8].reshape(8, WIDE, BASIS_STRIDE)
+    folded = sum(pflux[o, e0:e1, :WIDE] @ basis[o, :, :sh.BANDS2] for o in range(8))
+    values.reshape(-1, sh.BANDS2)[cells[e0:e1] * 3 + pcol[e0:e1]] -= folded
+
+
+@jit.kernel
+def _add_shell(dst, src, p, i0, i1):  # pragma: no cover - compiled
+    """dst += src on the shell cells (12 floats each) of padded slabs i0..i1-1."""
+    row = p * 12
+    for i in range(i0, i1):
+        for j in range(p):
+            at = (i * p + j) * row
+            if i == 0 or i == p - 1 or j == 0 or j == p - 1:
+                for t in range(row):
+                    dst[at + t] += src[at + t]
+            else:
+                for t in range(12):
+                    dst[at + t] += src[at + t]
+                    dst[at + row - 12 + t] += src[at + row - 12 + t]
+
+
+@jit.kernel
+def _zero_shell(out, p):  # pragma: no cover - compiled
+    """out = 0 on the shell cells (12 floats each) of the padded grid; the rest as it is."""
+    row = p * 12
+    for i in range(p):
+        for j in range(p):
+            at = (i * p + j) * row
+            if i == 0 or i == p - 1 or j == 0 or j == p - 1:
+                out[at:at + row] = 0.0
+            else:
+                out[at:at + 12] = 0.0
+                out[at + row - 12:at + row] = 0.0
 
 
 def _inputs(injected: np.ndarray, visibility: np.ndarray | None, passing: np.ndarray | None,
@@ -847,20 +893,67 @@ def _launch_inputs(injected: np.ndarray, visibility: np.ndarray | None) -> dict:
     (n, 0): the launch's occlusion, from ``visibility``), and "lit_first": the first lit
     cell of each slab ((R+3,), the lit cells in flat order)."""
     r = injected.shape[0]
-    p = r + 2
-    cells, lit, rows = ordinates.lit_rows(injected)
+    cells = np.ascontiguousarray(injected, np.float32).reshape(-1, 4)
+    lit, rows, xyz, lit_first = _lit_cells(cells, r)
     # lanes past an octant's directions are left as they are: _launch_lanes never reads them
     flux = np.empty((8, lit.size, 3 * GEOMETRY), np.float32)
-    ordinates._unfold_compiled(cells, rows, np.arange(rows.size) * GEOMETRY,
-                               ordinates.tables()[0], flux,
+    dirs = ordinates.tables()[0]
+    ordinates._unfold_compiled(cells, rows, np.arange(rows.size) * GEOMETRY, dirs, flux,
                                _direction_lanes(lit.size * 3 * GEOMETRY))
-    m, start, dirs, _ = ordinates.launch_geometry(cells, lit, r, None)
+    m = ordinates.emission_directions(cells, lit)
     lvis = np.zeros((lit.size, 0), np.float32)
     if visibility is not None:
-        lvis = _offset_visibility_at(visibility, lit)
-    xyz = np.stack(np.unravel_index(start, (p, p, p)), axis=1)
-    return {"launch": (flux, m, xyz, dirs, lvis),
-            "lit_first": np.searchsorted(start, np.arange(p + 1) * p * p)}
+        lvis = np.empty((lit.size, 27), np.float32)
+        _offset_visibility_kernel(np.ascontiguousarray(visibility, np.float32), lit, lvis)
+    return {"launch": (flux, m, xyz, dirs, lvis), "lit_first": lit_first}
+
+
+@jit.kernel
+def _lit_cells(cells, r):  # pragma: no cover - compiled
+    """ordinates.lit_rows and launch_geometry's cells, compiled: (lit cells (n,), their 3 n
+    (cell, colour) rows, padded cells (n, 3), the first lit cell of each padded slab
+    (R+3,)); lit where the colours' band 0 sum (in order) is > 0."""
+    p = r + 2
+    total = r * r * r
+    zero = np.float32(0.0)
+    lit = np.empty(total, np.int64)
+    n = 0
+    for c in range(total):
+        row = 3 * c
+        if (cells[row, 0] + cells[row + 1, 0]) + cells[row + 2, 0] > zero:
+            lit[n] = c
+            n += 1
+    lit = lit[:n].copy()
+    rows = np.empty(3 * n, np.int64)
+    xyz = np.empty((n, 3), np.int64)
+    first = np.zeros(p + 1, np.int64)
+    for e in range(n):
+        c = lit[e]
+        rows[3 * e], rows[3 * e + 1], rows[3 * e + 2] = 3 * c, 3 * c + 1, 3 * c + 2
+        i, j, k = c // (r * r) + 1, (c // r) % r + 1, c % r + 1
+        xyz[e, 0], xyz[e, 1], xyz[e, 2] = i, j, k
+        first[i + 1] = e + 1  # the slabs after i start after e (filled forward below)
+    for x in range(1, p + 1):
+        first[x] = max(first[x], first[x - 1])
+    return lit, rows, xyz, first
+
+
+@jit.kernel
+def _offset_visibility_kernel(faces, cells, out):  # pragma: no cover - compiled
+    """``_offset_visibility_at`` (float32 ``faces`` (6, R, R, R)) into out (n, 27): the same
+    products in the same order."""
+    flat = faces.reshape(6, -1)
+    one = np.float32(1.0)
+    for e in range(cells.shape[0]):
+        c = cells[e]
+        f0 = (flat[1, c], one, flat[0, c])
+        f1 = (flat[3, c], one, flat[2, c])
+        f2 = (flat[5, c], one, flat[4, c])
+        for a in range(3):
+            for b in range(3):
+                ab = f0[a] * f1[b]
+                for d in range(3):
+                    out[e, (a * 3 + b) * 3 + d] = ab * f2[d]
 
 
 def _offset_visibility_at(visibility: np.ndarray, cells: np.ndarray) -> np.ndarray:
@@ -879,19 +972,43 @@ def _passing_inputs(passing: np.ndarray | None, r: int) -> tuple:
     octant's directions, the first of each slab (R+3,)) for the m (cell, colour) pairs
     holding light (ordinates.unfold_sparse's). Octant-major: an octant reads its own in
     order (cell-major, 1 ms of its kernel's 15 went to cache misses)."""
-    p = r + 2
     if passing is None:
         passing = np.zeros((0, 3, 4), np.float32)
     cells = np.ascontiguousarray(passing, np.float32).reshape(-1, 4)
-    rows = np.flatnonzero(cells[:, 0] > 0)
-    cell, colour = np.divmod(rows, 3)
-    i, j, k = np.unravel_index(cell, (r, r, r))
-    pcell = ((i + 1) * p + j + 1) * p + k + 1
+    rows, pcell, colour, first = _passing_cells(cells, r)
     flux = np.zeros((8, rows.size, GEOMETRY), np.float32)
     ordinates._unfold_compiled(cells, rows, np.arange(rows.size) * GEOMETRY,
                                ordinates.tables()[0], flux,
                                _direction_lanes(rows.size * GEOMETRY))
-    return pcell, colour, flux, np.searchsorted(pcell, np.arange(p + 1) * p * p)
+    return pcell, colour, flux, first
+
+
+@jit.kernel
+def _passing_cells(cells, r):  # pragma: no cover - compiled
+    """The (cell, colour) rows of ``cells`` ((R^3 3, 4)) whose band 0 is > 0, their padded
+    flat cells and colours, and the first of each padded slab (R+3,): ``_passing_inputs``'
+    index arithmetic, compiled."""
+    p = r + 2
+    zero = np.float32(0.0)
+    rows = np.empty(cells.shape[0], np.int64)
+    m = 0
+    for t in range(cells.shape[0]):
+        if cells[t, 0] > zero:
+            rows[m] = t
+            m += 1
+    rows = rows[:m].copy()
+    pcell = np.empty(m, np.int64)
+    colour = np.empty(m, np.int64)
+    first = np.zeros(p + 1, np.int64)
+    for e in range(m):
+        c = rows[e] // 3
+        colour[e] = rows[e] - 3 * c
+        i, j, k = c // (r * r) + 1, (c // r) % r + 1, c % r + 1
+        pcell[e] = (i * p + j) * p + k
+        first[i + 1] = e + 1
+    for x in range(1, p + 1):
+        first[x] = max(first[x], first[x - 1])
+    return rows, pcell, colour, first
 
 
 def _ring(work: dict) -> tuple:
@@ -901,12 +1018,19 @@ def _ring(work: dict) -> tuple:
     return np.empty((RING + 1) * p * p * LANES, np.float32), np.zeros((RING + 1, p), np.int64)
 
 
-def _zero_sums(work: dict) -> tuple:
+def _zero_sums(work: dict, whole: bool = True) -> tuple:
     """Folded sums to add to: values (R^3 3 9) and outflow ((R+2)^3 3 4, empty without the
-    shell)."""
+    shell), zero; not ``whole``: the outflow zero on the shell only (the sweep adds nothing
+    elsewhere, and only its shell is added up)."""
     r, p = work["r"], work["p"]
-    return (np.zeros(r**3 * 3 * sh.BANDS2, np.float32),
-            np.zeros(p**3 * 3 * 4 if work["shell"] else 0, np.float32))
+    values = np.zeros(r**3 * 3 * sh.BANDS2, np.float32)
+    if not work["shell"]:
+        return values, np.zeros(0, np.float32)
+    if whole:
+        return values, np.zeros(p**3 * 3 * 4, np.float32)
+    outflow = np.empty(p**3 * 3 * 4, np.float32)
+    _zero_shell(outflow, p)
+    return values, outflow
 
 
 def _run_octant(work: dict, o: int, ring: tuple, values: np.ndarray,
@@ -920,15 +1044,8 @@ def _run_octant(work: dict, o: int, ring: tuple, values: np.ndarray,
 
 
 def _finish(work: dict, values: np.ndarray, outflow: np.ndarray) -> tuple:
-    """The folded sums less the fold of the handed-on light (it is not an arrival): (values
-    (R, R, R, 3, 9), outflow (R+2, R+2, R+2, 3, 4) or None)."""
+    """The folded sums (added up, the handed-on light's fold taken off: ``_add_part``) in
+    their shapes: (values (R, R, R, 3, 9), outflow (R+2, R+2, R+2, 3, 4) or None)."""
     r, p = work["r"], work["p"]
     values = values.reshape(r, r, r, 3, sh.BANDS2)
-    pcell, pcol, pflux, _ = work["passing"]
-    if pcell.size:
-        i, j, k = np.unravel_index(pcell, (p, p, p))
-        rows = ((i - 1) * r + j - 1) * r + k - 1
-        basis = tables()["basis"][:, :B8].reshape(8, WIDE, BASIS_STRIDE)
-        folded = sum(pflux[o, :, :WIDE] @ basis[o, :, :sh.BANDS2] for o in range(8))
-        values.reshape(-1, sh.BANDS2)[rows * 3 + pcol] -= folded
     return values, (outflow.reshape(p, p, p, 3, 4) if work["shell"] else None)

@@ -175,3 +175,31 @@ def test_unfold_reusing_a_density_is_the_numpy_unfold():
         want = ordinates.unfold(injected)
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-6 * np.abs(want).max())
     assert np.array_equal(got[:, 0], got[:, 2])
+
+
+@pytest.mark.parametrize("r", [1, 4, 7])
+def test_compiled_inputs_are_the_numpy_ones(r):
+    """The lit cells, the launch's transmittances and the handed-on cells compiled
+    (_lit_cells, _offset_visibility_kernel, _passing_cells): numpy's, bit for bit."""
+    injected = _vpls(r, seed=r + 3, count=3 * r)
+    visibility = _visibility(r, seed=r + 5)
+    passing = _passing(r, seed=r + 7)
+    p = r + 2
+    cells, lit, rows = ordinates.lit_rows(injected)
+    got = octants._lit_cells(cells, r)
+    _, start, _, _ = ordinates.launch_geometry(cells, lit, r, None)
+    xyz = np.stack(np.unravel_index(start, (p, p, p)), axis=1)
+    first = np.searchsorted(start, np.arange(p + 1) * p * p)
+    for g, want in zip(got, (lit, rows, xyz, first), strict=True):
+        np.testing.assert_array_equal(g, want)
+    lvis = np.empty((lit.size, 27), np.float32)
+    octants._offset_visibility_kernel(visibility, lit, lvis)
+    np.testing.assert_array_equal(lvis, octants._offset_visibility_at(visibility, lit))
+    pcells = np.ascontiguousarray(passing, np.float32).reshape(-1, 4)
+    prows = np.flatnonzero(pcells[:, 0] > 0)
+    cell, colour = np.divmod(prows, 3)
+    i, j, k = np.unravel_index(cell, (r, r, r))
+    pcell = ((i + 1) * p + j + 1) * p + k + 1
+    want = (prows, pcell, colour, np.searchsorted(pcell, np.arange(p + 1) * p * p))
+    for g, w in zip(octants._passing_cells(pcells, r), want, strict=True):
+        np.testing.assert_array_equal(g, w)
