@@ -92,22 +92,16 @@ def _mxcsr_swap_codegen(typingctx, value, mask):
     return types.int64(types.int64, types.int64), codegen
 
 
-_SWAP: list = []  # the compiled swap, built at first use (x86 with numba only)
+if numba is not None and X86:  # compiled once per machine (cached on disk like the kernels)
+    from numba.extending import intrinsic as _intrinsic
 
+    _swap_intrinsic = _intrinsic(_mxcsr_swap_codegen)
 
-def _mxcsr_swap(value: int, mask: int) -> int:
-    """Set the MXCSR bits under ``mask`` to value's in the calling thread; the old MXCSR."""
-    if not _SWAP:
-        from numba.extending import intrinsic
-
-        swap = intrinsic(_mxcsr_swap_codegen)
-
-        @numba.njit(nogil=True)
-        def run(v, m):
-            return swap(v, m)
-
-        _SWAP.append(run)
-    return int(_SWAP[0](value, mask))
+    @numba.njit(cache=True, nogil=True)
+    def _mxcsr_swap(value, mask):  # pragma: no cover - compiled
+        """Set the MXCSR bits under ``mask`` to value's in the calling thread; the old
+        MXCSR."""
+        return _swap_intrinsic(value, mask)
 
 
 @contextlib.contextmanager
@@ -119,7 +113,7 @@ def flush_subnormals() -> Iterator[None]:
     if not (enabled() and X86):
         yield
         return
-    old = _mxcsr_swap(FTZ_DAZ, FTZ_DAZ)
+    old = int(_mxcsr_swap(FTZ_DAZ, FTZ_DAZ))
     try:
         yield
     finally:
