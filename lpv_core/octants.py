@@ -138,9 +138,14 @@ def _vec_ptr(builder, ptr, index, lanes: int):
                            ir.VectorType(ir.FloatType(), lanes).as_pointer())
 
 
-def _load(builder, ptr, index, lanes: int):
-    """<lanes x float> from ptr + index (no alignment assumed)."""
-    return builder.load(_vec_ptr(builder, ptr, index, lanes), align=4)
+def _load(builder, ptr, index, lanes: int, invariant: bool = False):
+    """<lanes x float> from ptr + index (no alignment assumed); ``invariant``: memory that
+    no store of the kernel changes (the factor and basis tables), so LLVM may keep it in
+    registers across cells instead of loading it again after every store to the ring."""
+    value = builder.load(_vec_ptr(builder, ptr, index, lanes), align=4)
+    if invariant:
+        value.set_metadata("invariant.load", builder.module.add_metadata([]))
+    return value
 
 
 def _store(builder, value, ptr, index, lanes: int) -> None:
@@ -182,10 +187,10 @@ def _sweep_ir(builder, rp, o_v, srcs_v, vis_v, fp, t_v, open_space: bool, count:
                                       for m in range(7)]
     out = []
     for v in range(count):
-        acc = builder.fmul(_load(builder, fp, _offset(builder, t_v, 8 * v), 8),
+        acc = builder.fmul(_load(builder, fp, _offset(builder, t_v, 8 * v), 8, True),
                            _load(builder, rp, _offset(builder, o_v, 8 * v), 8))
         for m in (1, 2, 3, 4, 5, 6, 0):
-            f = _load(builder, fp, _offset(builder, t_v, (m + 1) * LANES + 8 * v), 8)
+            f = _load(builder, fp, _offset(builder, t_v, (m + 1) * LANES + 8 * v), 8, True)
             if scales is not None:
                 f = builder.fmul(scales[m], f)
             src = _load(builder, rp, _offset(builder, builder.extract_value(srcs_v, m), 8 * v), 8)
@@ -213,7 +218,8 @@ def _fold_ir(builder, vectors: list, cell, bp, op, oi_v, coefficients: int, w: i
             for d in range(g, min(g + 3, w)):
                 av = _splat(builder, builder.load(builder.gep(cell[0], [_offset(
                     builder, cell[1], c * w + d)])), lanes)
-                b = _load(builder, bp, _offset(builder, oi_v.type(0), d * BASIS_STRIDE), lanes)
+                b = _load(builder, bp, _offset(builder, oi_v.type(0), d * BASIS_STRIDE), lanes,
+                          True)
                 acc = builder.fmul(av, b) if acc is None else builder.call(fma, [av, b, acc])
             parts.append(acc)
         total = parts[0]
@@ -222,7 +228,7 @@ def _fold_ir(builder, vectors: list, cell, bp, op, oi_v, coefficients: int, w: i
         _store(builder, builder.fadd(_load(builder, op, oc, lanes), total), op, oc, lanes)
     if coefficients > 8:
         last = _lane_sums(builder, [builder.fmul(vec, _load(builder, bp, _offset(
-            builder, oi_v.type(0), B8 + 8 * v), 8)) for v, vec in enumerate(vectors)], w)
+            builder, oi_v.type(0), B8 + 8 * v), 8, True)) for v, vec in enumerate(vectors)], w)
         for c in range(3):
             at = builder.gep(op, [_offset(builder, oi_v, c * coefficients + 8)])
             builder.store(builder.fadd(builder.load(at), last[c]), at)
