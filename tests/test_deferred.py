@@ -42,3 +42,42 @@ def test_bad_antialias_is_named(bad):
     scene = demo.cornell_box("SPOT", (8, 8), GISettings(antialias=bad))
     with pytest.raises(ValueError, match="antialias"):
         deferred.render(eng, scene, eng.update(scene))
+
+
+@pytest.mark.parametrize("offset", [0.0, 1.0e5])
+@pytest.mark.parametrize("kind", ["SPOT", "SUN"])
+def test_shadow_map_depths_of_a_floor_are_the_analytic_distances(kind, offset):
+    """A light 2 m above a 4 m floor (z = 0), the scene moved by ``offset`` on every axis:
+    a spot's map holds |p - light| = 2 / cos(angle) at every covered texel (its minimum 2 m,
+    straight down), a sun pointing down the same depth 2 m + the view's near offset
+    everywhere; float32 distances from the rasteriser's origin keep 1e-4 m at 1e5 m."""
+    from lpv_core import direct
+    from lpv_core.raster import Rasterizer
+    from lpv_core.scene import Light
+
+    shift = np.full(3, offset)
+    corners = np.array([[[-2, -2, 0], [2, -2, 0], [2, 2, 0]],
+                        [[-2, -2, 0], [2, 2, 0], [-2, 2, 0]]], np.float64) + shift
+    raster = Rasterizer()
+    raster.upload(corners, np.tile([0.0, 0.0, 1.0], (2, 3, 1)), np.ones((2, 3)),
+                  np.ones((2, 3)))
+    matrix = np.eye(4)
+    matrix[:3, 3] = shift + [0.0, 0.0, 2.0]  # local -Z points down
+    light = Light("L", kind, matrix, spot_size=np.radians(60.0))
+    bounds = (shift + [-2.0, -2.0, 0.0], shift + [2.0, 2.0, 2.0])
+    shadow = direct.render_shadow_map(raster, light, bounds, 64)
+    (depth,) = shadow.depths
+    covered = np.isfinite(depth)
+    assert depth.dtype == np.float32 and covered.mean() > 0.5
+    view = shadow.views[0]
+    if kind == "SPOT":
+        # texel centres' rays: the floor point along each is at 2 / cos from the light
+        n = depth.shape[0]
+        u = (np.arange(n) + 0.5) / n * 2.0 - 1.0
+        x, y = np.meshgrid(u * view.tan_half, -u * view.tan_half)  # rows top-first
+        expected = 2.0 * np.sqrt(1.0 + x**2 + y**2)
+        np.testing.assert_allclose(depth[covered], expected[covered], rtol=0, atol=1e-4)
+        assert abs(depth[covered].min() - expected.min()) < 1e-4
+    else:
+        near = float(-(np.asarray(view.view)[2, :3] @ (shift + [0, 0, 2]) + view.view[2, 3]))
+        np.testing.assert_allclose(depth[covered], 2.0 + near, rtol=0, atol=1e-4)
