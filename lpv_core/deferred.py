@@ -104,14 +104,16 @@ def _render_samples(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats,
         nrm = frame.normal[mask].astype(np.float64)
         color[mask] = frame.albedo[mask]
         with Timer(stats, "direct"):
-            e_dir = np.zeros((pos.shape[0], 3))
+            e_dir = None
             for light in scene.lights:
                 if light.power <= 0:
                     continue
                 shadow = engine.shadow_map(scene, light, (lo, hi),
                                            scene.settings.shadow_resolution, stats)
-                e_dir += direct.irradiance(light, pos, nrm, shadow)
-            diff_dir[mask] = e_dir / np.pi
+                e = direct.irradiance(light, pos, nrm, shadow)
+                e_dir = e if e_dir is None else e_dir + e  # the first light: no zeros added
+            if e_dir is not None:
+                diff_dir[mask] = e_dir / np.pi
         if lpv.values is not None:
             with Timer(stats, "lookup"):
                 # Pixels of non-receivers (Object.lpv.gi_receiver off) get no indirect light.
@@ -124,11 +126,16 @@ def _render_samples(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats,
                 finest = min([lpv.grid.cell_size] + [g.cell_size for g, _, _ in lpv.fine])
                 at = toward_viewer(scene.camera, pos, VIEWER_NUDGE_CELLS * finest)
                 levels = [(lpv.grid, lpv.values, lpv.visibility)] + list(lpv.fine)
+                every = bool(recv.all())  # no masked copies of 1M points when all receive
+                at_r, nrm_r = (at, nrm) if every else (at[recv], nrm[recv])
                 for grid, values, vis in levels:  # inner cascades add theirs
-                    e_ind[recv] += backend.irradiance(
-                        grid, values, lookup.sample_points(grid, at[recv], nrm[recv], lpv.gaps.get(grid)),
-                        nrm[recv], offset_cells=0.0, angular=scene.settings.angular,
-                        visibility=vis)
+                    e = backend.irradiance(
+                        grid, values, lookup.sample_points(grid, at_r, nrm_r, lpv.gaps.get(grid)),
+                        nrm_r, offset_cells=0.0, angular=scene.settings.angular, visibility=vis)
+                    if every:
+                        e_ind += e
+                    else:
+                        e_ind[recv] += e
                 if areas.has_transition(scene.areas):
                     e_ind *= areas.transition_factor(scene.areas, pos)
                 diff_ind[mask] = e_ind / np.pi
