@@ -98,11 +98,9 @@ def _render_samples(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats,
     if scene.triangle_count:
         lo, hi = engine.upload(scene, stats)  # the LPV box: shadow maps cover it, not outliers
         with Timer(stats, "gbuffer"):
-            frame = engine.raster.render(scene.camera.view, projection, w, h)
-        mask = frame.covered
-        pos = frame.position[mask]
-        nrm = frame.normal[mask].astype(np.float64)
-        color[mask] = frame.albedo[mask]
+            mask, pos, nrm, albedo, receiver = engine.raster.gbuffer(scene.camera.view,
+                                                                     projection, w, h)
+            color[mask] = albedo
         with Timer(stats, "direct"):
             e_dir = None
             for light in scene.lights:
@@ -117,8 +115,7 @@ def _render_samples(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats,
         if lpv.values is not None:
             with Timer(stats, "lookup"):
                 # Pixels of non-receivers (Object.lpv.gi_receiver off) get no indirect light.
-                recv = np.ones(pos.shape[0], bool) if frame.receiver is None \
-                    else frame.receiver[mask]
+                recv = receiver
                 if not recv.all():
                     stats.skip("lookup", f"{int((~recv).sum())} pixels", "gi_receiver is off")
                 e_ind = np.zeros((pos.shape[0], 3))

@@ -318,6 +318,20 @@ class Rasterizer:
             receiver=covered & (out[2][..., 3] > 0.5),
         )
 
+    def gbuffer(self, view: np.ndarray, projection: np.ndarray, width: int,
+                height: int) -> tuple:
+        """The covered pixels of a camera view, as ``render`` gives them at frame.covered
+        (the same numbers, pixels in row-major order, rows top-first): (covered (H, W) bool,
+        world positions (M, 3) float64, normals (M, 3) float64, albedo (M, 3) float32,
+        receiver flags (M,) bool). Converts only what is covered, not whole frames: 1280x720
+        45 -> ~15 ms besides the draw and the readback."""
+        pos4, nrm4, alb4 = self.read(view, projection, width, height, False, (0, 1, 2))
+        covered = pos4[..., 3] > 0.5
+        pos = pos4[covered][:, :3].astype(np.float64) + self.origin
+        nrm = nrm4[covered][:, :3].astype(np.float64)
+        alb = alb4[covered]
+        return covered, pos, nrm, np.ascontiguousarray(alb[:, :3]), alb[:, 3] > 0.5
+
     def release(self) -> None:
         self.release_geometry()
         for fbo in self._fbos.values():

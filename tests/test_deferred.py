@@ -81,3 +81,20 @@ def test_shadow_map_depths_of_a_floor_are_the_analytic_distances(kind, offset):
     else:
         near = float(-(np.asarray(view.view)[2, :3] @ (shift + [0, 0, 2]) + view.view[2, 3]))
         np.testing.assert_allclose(depth[covered], 2.0 + near, rtol=0, atol=1e-4)
+
+
+def test_gbuffer_is_the_rendered_frame_at_its_covered_pixels():
+    """Rasterizer.gbuffer (covered pixels only) gives render()'s frame at frame.covered, in
+    row-major order: positions, normals, albedo and the receiver flags."""
+    scene = demo.cornell_box("SPOT", (40, 30), GISettings())
+    eng = engine.Engine()
+    eng.upload(scene, engine.Stats())
+    cam = scene.camera
+    frame = eng.raster.render(cam.view, cam.projection, 40, 30)
+    covered, pos, nrm, albedo, receiver = eng.raster.gbuffer(cam.view, cam.projection, 40, 30)
+    assert covered.shape == (30, 40) and 0.3 < covered.mean() < 1.0
+    np.testing.assert_array_equal(covered, frame.covered)
+    np.testing.assert_array_equal(pos, frame.position[covered])
+    np.testing.assert_array_equal(nrm, frame.normal[covered].astype(np.float64))
+    np.testing.assert_array_equal(albedo, frame.albedo[covered])
+    np.testing.assert_array_equal(receiver, frame.receiver[covered])
