@@ -7,7 +7,7 @@ colour); multiplied by "Diffuse Color" it gives the reflected radiance.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -25,6 +25,14 @@ class ShadowMap:
     views: list
     depths: list  # (H, W) float32, inf where nothing was hit
     resolution: int
+    _stacked: np.ndarray | None = field(default=None, repr=False, compare=False)
+
+    def stacked(self) -> np.ndarray:
+        """The depths as one (views, H, W) float32 array, made once (the compiled direct
+        light reads it for every sample of every render)."""
+        if self._stacked is None:
+            self._stacked = np.stack([np.asarray(d, np.float32) for d in self.depths])
+        return self._stacked
 
 
 def render_shadow_map(raster: Rasterizer, light: Light, bounds, resolution: int) -> ShadowMap:
@@ -162,8 +170,7 @@ def _irradiance_compiled(light: Light, positions: np.ndarray, normals: np.ndarra
     mats = np.array([np.asarray(v.view, np.float64) for v in views]).reshape(-1, 4, 4)
     ortho = np.array([bool(v.ortho) for v in views], np.bool_)
     scale = np.array([v.half_extent if v.ortho else v.tan_half for v in views], np.float64)
-    depths = (np.stack([np.asarray(d, np.float32) for d in shadow.depths]) if shadowed
-              else np.zeros((0, 1, 1), np.float32))
+    depths = shadow.stacked() if shadowed else np.zeros((0, 1, 1), np.float32)
     face_view = np.full(6, -1, np.int64)  # cube face -> view (point and area lights)
     single = kind == 3 or len(views) == 1
     for i, v in enumerate(views):
