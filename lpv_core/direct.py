@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import jit
+from . import jit, ordinates
 from . import lights as lights_mod
 from .raster import Rasterizer
 from .scene import Light
@@ -181,15 +181,7 @@ def _irradiance_compiled(light: Light, positions: np.ndarray, normals: np.ndarra
     args = (kind, np.asarray(light.position, np.float64), np.asarray(light.direction, np.float64),
             float(light.power), cos_half, smooth, mats, ortho, scale, depths, face_view, single,
             res, pos, nrm, out)
-    n = pos.shape[0]
-    if n < 4096:
-        _direct_kernel(*args, 0, n)
-    else:
-        from .ordinates import _pool
-
-        for _ in _pool().map(lambda span: _direct_kernel(*args, *span),
-                             ((0, n // 2), (n // 2, n))):
-            pass
+    ordinates.in_halves(lambda sl: _direct_kernel(*args, sl.start, sl.stop), pos.shape[0])
     return out
 
 

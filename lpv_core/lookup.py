@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import closure, jit, sh
+from . import closure, jit, ordinates, sh
 from .grid import Grid
 from .injection import trilinear_corners, visible_corners
 
@@ -49,10 +49,10 @@ def gap_corrected(grid: Grid, positions: np.ndarray, gaps: np.ndarray | None) ->
         return p
     if jit.enabled():
         out = np.empty_like(p)
-        _in_halves(lambda sl: _gap_kernel(grid.origin_array, float(grid.cell_size),
-                                          grid.resolution, np.ascontiguousarray(gaps),
-                                          np.ascontiguousarray(p), out, sl.start, sl.stop),
-                   p.shape[0])
+        g, q = np.ascontiguousarray(gaps), np.ascontiguousarray(p)
+        ordinates.in_halves(lambda sl: _gap_kernel(grid.origin_array, float(grid.cell_size),
+                                                   grid.resolution, g, q, out, sl.start,
+                                                   sl.stop), p.shape[0])
         return out
     r = grid.resolution
     rel = (p - grid.origin_array) / grid.cell_size  # face planes at integers
@@ -119,18 +119,6 @@ def irradiance(
     return np.maximum(e, 0.0)
 
 
-def _in_halves(run, n: int) -> None:
-    """run(slice) over 0..n in two halves on the engine's thread pool (the kernels release the
-    GIL), one call for small n."""
-    if n < 4096:
-        run(slice(0, n))
-        return
-    from .ordinates import _pool
-
-    for _ in _pool().map(run, (slice(0, n // 2), slice(n // 2, n))):
-        pass  # re-raises a half's exception here
-
-
 def _irradiance_compiled(grid: Grid, values: np.ndarray, positions: np.ndarray,
                          normals: np.ndarray, offset_cells: float,
                          visibility: np.ndarray | None) -> np.ndarray:
@@ -145,7 +133,7 @@ def _irradiance_compiled(grid: Grid, values: np.ndarray, positions: np.ndarray,
                       + [sh.IRRADIANCE_KERNEL[2]] * 5)
     pos, nrm = np.ascontiguousarray(positions), np.ascontiguousarray(normals)
     out = np.empty((pos.shape[0], 3), np.float64)
-    _in_halves(lambda sl: _irradiance_kernel(
+    ordinates.in_halves(lambda sl: _irradiance_kernel(
         grid.origin_array, float(grid.cell_size), r, flat, vis, kernel, pos, nrm,
         float(offset_cells), out, sl.start, sl.stop), pos.shape[0])
     return out

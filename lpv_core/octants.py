@@ -487,25 +487,13 @@ def _scatter_direction(flux, m, xyz, dirs, lvis, e, j, dd, w, ring, live, p, lo,
     (``_launch_lanes``). Targets in slabs outside lo..hi-1 (the shell, when it is not swept)
     are dropped; the rows reached are marked in ``live``."""
     has_vis = lvis.shape[1] > 0
-    half, eps = np.float32(ordinates.LAUNCH_CELLS), np.float32(1e-6)
-    zero, one = np.float32(0.0), np.float32(1.0)
+    one = np.float32(1.0)
     pp = p * p
     n = hi - lo
     x, y, z = xyz[e, 0], xyz[e, 1], xyz[e, 2]
-    mx, my, mz = m[e, 0], m[e, 1], m[e, 2]
     f0, f1, f2 = flux[e, dd], flux[e, GEOMETRY + dd], flux[e, 2 * GEOMETRY + dd]
-    dx, dy, dz = dirs[j, 0], dirs[j, 1], dirs[j, 2]
-    cos = dx * mx + dy * my + dz * mz
-    sx_, sy_, sz_ = dx - cos * mx, dy - cos * my, dz - cos * mz
-    sin = np.sqrt(sx_ * sx_ + sy_ * sy_ + sz_ * sz_)
-    scale = half / max(max(cos, sin), eps) if cos > zero else zero
-    mvx = min(max(dx + scale * sx_, -one), one)
-    mvy = min(max(dy + scale * sy_, -one), one)
-    mvz = min(max(dz + scale * sz_, -one), one)
-    bx, by, bz = -1 if mvx < zero else 0, -1 if mvy < zero else 0, -1 if mvz < zero else 0
-    fx = mvx + one if mvx < zero else mvx
-    fy = mvy + one if mvy < zero else mvy
-    fz = mvz + one if mvz < zero else mvz
+    bx, by, bz, fx, fy, fz = ordinates.launch_corners(dirs[j, 0], dirs[j, 1], dirs[j, 2],
+                                                      m[e, 0], m[e, 1], m[e, 2])
     for cx in range(2):
         u = x + bx + cx - lo if sx > 0 else hi - 1 - x - bx - cx
         if u < 0 or u >= n:

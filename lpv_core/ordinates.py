@@ -213,6 +213,29 @@ def _unfold_compiled(cells, rows, dest, dirs, out, base=None) -> None:
 
 
 @jit.kernel
+def launch_corners(dx, dy, dz, mx, my, mz):  # pragma: no cover - compiled
+    """Where the launch puts light leaving along (dx, dy, dz) a cell whose emission direction
+    is (mx, my, mz): moved LAUNCH_CELLS sideways along the part of d across m, the base
+    corner offset (bx, by, bz) in {-1, 0}^3 and the trilinear fractions (fx, fy, fz) towards
+    base + 1 (the corners are base + {0, 1}^3), float32 in the numpy code's order. Scalars in
+    and out: the compiled launches (here and octants.py) inline it."""
+    half, eps = np.float32(LAUNCH_CELLS), np.float32(1e-6)
+    zero, one = np.float32(0.0), np.float32(1.0)
+    cos = dx * mx + dy * my + dz * mz
+    sx, sy, sz = dx - cos * mx, dy - cos * my, dz - cos * mz
+    sin = np.sqrt(sx * sx + sy * sy + sz * sz)
+    scale = half / max(max(cos, sin), eps) if cos > zero else zero
+    mvx = min(max(dx + scale * sx, -one), one)
+    mvy = min(max(dy + scale * sy, -one), one)
+    mvz = min(max(dz + scale * sz, -one), one)
+    bx, by, bz = -1 if mvx < zero else 0, -1 if mvy < zero else 0, -1 if mvz < zero else 0
+    fx = mvx + one if mvx < zero else mvx
+    fy = mvy + one if mvy < zero else mvy
+    fz = mvz + one if mvz < zero else mvz
+    return bx, by, bz, fx, fy, fz
+
+
+@jit.kernel
 def _launch_kernel(flux, m, start, dirs, vis, p, out, j0, j1):  # pragma: no cover - compiled
     """``launch``'s scatter (compiled) for directions j0 <= j < j1 (``_launch_direction``),
     direction outermost: out[j] (3 (R+2)^3) stays in cache."""
@@ -230,25 +253,13 @@ def _launch_direction(flux, m, start, dirs, vis, p, out, j):  # pragma: no cover
     weights formed in the numpy code's order. Scalars only in the loop (a small work array
     would be re-read after every store to ``out``: 1.3x slower)."""
     has_vis = vis.shape[1] > 0
-    half, eps = np.float32(LAUNCH_CELLS), np.float32(1e-6)
     zero, one = np.float32(0.0), np.float32(1.0)
     dx, dy, dz = dirs[j, 0], dirs[j, 1], dirs[j, 2]
     for i in range(m.shape[0]):
         f0, f1, f2 = flux[j, 3 * i], flux[j, 3 * i + 1], flux[j, 3 * i + 2]
         if f0 == zero and f1 == zero and f2 == zero:
             continue  # nothing emitted this way (behind the surface): it would add zeros
-        mx, my, mz = m[i, 0], m[i, 1], m[i, 2]
-        cos = dx * mx + dy * my + dz * mz
-        sx, sy, sz = dx - cos * mx, dy - cos * my, dz - cos * mz
-        sin = np.sqrt(sx * sx + sy * sy + sz * sz)
-        scale = half / max(max(cos, sin), eps) if cos > zero else zero
-        mvx = min(max(dx + scale * sx, -one), one)
-        mvy = min(max(dy + scale * sy, -one), one)
-        mvz = min(max(dz + scale * sz, -one), one)
-        bx, by, bz = -1 if mvx < zero else 0, -1 if mvy < zero else 0, -1 if mvz < zero else 0
-        fx = mvx + one if mvx < zero else mvx  # move - base: the corners are base + {0, 1}
-        fy = mvy + one if mvy < zero else mvy
-        fz = mvz + one if mvz < zero else mvz
+        bx, by, bz, fx, fy, fz = launch_corners(dx, dy, dz, m[i, 0], m[i, 1], m[i, 2])
         corner = start[i] + (bx * p + by) * p + bz
         for cx in range(2):
             wx = fx if cx else one - fx
@@ -529,14 +540,8 @@ def add_emission_band2(values: np.ndarray, injected: np.ndarray) -> None:
     out = values.reshape(-1, sh.BANDS2)
     if not np.shares_memory(out, values):
         raise ValueError("add_emission_band2 needs a contiguous values array")
-    n = c.shape[0]
-    if n < 8192:
-        _emission_band2_kernel(c, out)
-        return
     # rows are independent: two halves on the pool (32^3: 0.34 -> ~0.2 ms), the same bits
-    for _ in _pool().map(lambda sl: _emission_band2_kernel(c[sl], out[sl]),
-                         (slice(0, n // 2), slice(n // 2, n))):
-        pass
+    in_halves(lambda sl: _emission_band2_kernel(c[sl], out[sl]), c.shape[0], 8192)
 
 
 def pad(flux: np.ndarray) -> np.ndarray:
@@ -628,6 +633,17 @@ def _pool():
 
         _POOL.append(ThreadPoolExecutor(pool_workers(), thread_name_prefix="lpv-octant"))
     return _POOL[0]
+
+
+def in_halves(run, n: int, smallest: int = 4096) -> None:
+    """run(slice) over 0..n: below ``smallest`` in one call here, else in two halves on
+    ``_pool``'s threads (for kernels that release the GIL and write disjoint parts);
+    iterating re-raises a half's exception here."""
+    if n < smallest:
+        run(slice(0, n))
+        return
+    for _ in _pool().map(run, (slice(0, n // 2), slice(n // 2, n))):
+        pass
 
 
 def pool_workers() -> int:
