@@ -295,20 +295,13 @@ class Rasterizer:
         width: int,
         height: int,
         ortho: bool = False,
-        positions_only: bool = False,
     ) -> Frame:
         """Rasterise from a world-to-view and projection matrix (OpenGL conventions).
-        ``positions_only`` reads back only the position target (shadow maps: a quarter of the
-        readback); the other fields are then read-only zeros."""
-        out = self.read(view, projection, width, height, ortho,
-                        (0,) if positions_only else (0, 1, 2, 3))
+        (Shadow maps read the position target alone: direct.render_shadow_map.)"""
+        out = self.read(view, projection, width, height, ortho, (0, 1, 2, 3))
         covered = out[0][..., 3] > 0.5
         pos = out[0][..., :3].astype(np.float64) + self.origin
         pos[~covered] = np.nan
-        if positions_only:
-            zeros = np.broadcast_to(np.zeros(3, np.float32), (height, width, 3))
-            return Frame(position=pos, normal=zeros, albedo=zeros, reflectance=zeros,
-                         covered=covered, receiver=covered)
         return Frame(
             position=pos,
             normal=np.ascontiguousarray(out[1][..., :3]),
