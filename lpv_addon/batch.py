@@ -116,7 +116,7 @@ def open_scene(args) -> object:
     if args.demo:
         if args.blend:
             raise BatchError("give either a .blend file or --demo, not both")
-        from . import scenes
+        from tools import scenes
 
         scenes.cornell_box("SPOT", resolution=(256, 256))
         scene = bpy.context.scene
@@ -208,9 +208,9 @@ def render_frames(scene, out: Path, frames, resolution, overrides: dict, quiet: 
             except ValueError as exc:  # settings the engine cannot run (e.g. out of memory)
                 print(f"error: frame {frame}: {exc}", file=sys.stderr)
                 return USAGE_ERROR
-            passes = core.deferred.render(engine, lpv_scene, result, stats)
+            passes = core.render.deferred.render(engine, lpv_scene, result, stats)
             t_w = time.perf_counter()
-            core.exr.write_multilayer(out / f"{frame:04d}.exr", passes)
+            core.render.exr.write_multilayer(out / f"{frame:04d}.exr", passes)
             stats.add_ms("write", time.perf_counter() - t_w)
             stats.ms["total"] = (time.perf_counter() - t0) * 1000.0
             entry = {"frame": frame, **stats.as_dict(), "intensity": lpv_scene.settings.intensity}

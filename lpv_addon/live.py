@@ -1,7 +1,7 @@
 """The live LPV engine behind the viewport overlay, the batch operator and the comparison.
 
 Blender's process never runs moderngl (it broke Blender's drawing, design.md): the engine
-runs in one long-lived child process (``python -m lpv_core.live_worker``, see that module for
+runs in one long-lived child process (``python -m lpv_core.worker``, see that module for
 the protocol) that keeps its GL context warm. This side extracts the scene with bpy, writes it
 as arrays, and reads back the LPV grids; the overlay uploads them as 3D textures.
 
@@ -37,9 +37,9 @@ import numpy as np
 
 from ._core import core
 
-live_worker = importlib.import_module(core.__name__ + ".live_worker")
+live_worker = importlib.import_module(core.__name__ + ".worker")
 PACKAGE_PARENT = str(Path(core.__file__).resolve().parents[1])
-WORKER_MODULE = "lpv_core.live_worker"
+WORKER_MODULE = "lpv_core.worker"
 MAX_REASONS = 12
 
 
@@ -48,7 +48,7 @@ class WorkerError(RuntimeError):
 
 
 class WorkerClient:
-    """A ``lpv_core.live_worker`` child process with a line-based JSON protocol."""
+    """A ``lpv_core.worker`` child process with a line-based JSON protocol."""
 
     def __init__(self, python: str | None = None):
         self.dir = tempfile.mkdtemp(prefix="lpv_live_")

@@ -322,7 +322,7 @@ class LPV_OT_compare_cycles(bpy.types.Operator):
                 info = reference.render_cycles_passes(Path(tmp) / "ref.exr", samples=samples,
                                                       diffuse_bounces=1, resolution=(w, h),
                                                       scene=scene)
-                ref = core.exr.read_multilayer(Path(tmp) / "ref.exr")
+                ref = core.render.exr.read_multilayer(Path(tmp) / "ref.exr")
         except (live.WorkerError, ValueError, OSError, RuntimeError, KeyError) as exc:
             self.report({"ERROR"}, f"Compare with Cycles failed: {exc}")
             return {"CANCELLED"}

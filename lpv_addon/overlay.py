@@ -370,8 +370,8 @@ def _draw_indirect(result, mvp: Matrix, eye4, view_dir4, weight: float,
     shader = _lpv_shader()
     # lookup.irradiance: 9 coefficients read with the irradiance kernel (2) whatever the
     # model, 4 as the max-entropy lobe (1: "m1", "dom") or the clamped SH (0: "sh")
-    lobe = getattr(result.settings, "angular", "sh") in live.core.closure.LOBE_MODELS
-    nudge = live.core.deferred.VIEWER_NUDGE_CELLS * min(lv["grid"].cell_size
+    lobe = getattr(result.settings, "angular", "sh") in live.core.propagation.closure.LOBE_MODELS
+    nudge = live.core.render.deferred.VIEWER_NUDGE_CELLS * min(lv["grid"].cell_size
                                                       for lv in res["levels"])
     for i, level in enumerate(res["levels"]):
         gpu.state.blend_set(first_blend if i == 0 else "ADDITIVE")

@@ -20,7 +20,7 @@ import numpy as np
 
 from .grid import Grid
 from .propagation import AXES
-from .scene import Area
+from .scene.model import Area
 
 
 def _local(area: Area, positions: np.ndarray) -> np.ndarray:

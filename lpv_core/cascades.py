@@ -15,8 +15,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import jit
 from .grid import Grid, fit_grid
+from .runtime import jit
 
 PUSH = 0.25  # fraction of a cascade's width it is moved along the view direction
 

@@ -13,22 +13,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import (
-    areas,
-    blas,
-    cascades,
-    geometry_volume,
-    heap,
-    injection,
-    jit,
-    lookup,
-    ordinates,
-    planner,
-    propagation,
-    sweep,
-)
+from . import areas, cascades, geometry_volume, injection, lookup, planner, propagation
 from .grid import Grid
-from .scene import Scene
+from .propagation import ordinates, sweep
+from .runtime import blas, heap, jit
+from .scene.model import Scene
 
 
 @dataclass
@@ -109,7 +98,7 @@ class Engine:
     @property
     def raster(self):
         if self._raster is None:
-            from .raster import Rasterizer
+            from .render.raster import Rasterizer
 
             self._raster = Rasterizer()
         return self._raster
@@ -125,7 +114,7 @@ class Engine:
         if stats is not None:
             stats.info["cpu_kernels"] = jit.name()
         if name == "auto":
-            from . import gl_backend
+            from .gl import backend as gl_backend
 
             try:
                 gl = self._gl_backend()
@@ -155,7 +144,7 @@ class Engine:
 
     def _gl_backend(self):
         if self._gl is None:
-            from .gl_backend import GLBackend
+            from .gl.backend import GLBackend
 
             self._gl = GLBackend(self.raster.ctx)
         return self._gl
@@ -193,7 +182,7 @@ class Engine:
                    stats: Stats | None = None):
         """direct.render_shadow_map, cached per geometry, light and resolution: frames of an
         animation whose geometry and lights hold still (a camera move) reuse them."""
-        from . import direct
+        from .render import direct
 
         geo = self._bounds[0] if self._bounds is not None else geometry_key(scene)
         key = (geo, light_key(light), int(resolution),

@@ -29,8 +29,8 @@ import threading
 
 import numpy as np
 
-from . import jit
 from .grid import Grid
+from .runtime import jit
 
 # Sample points per face edge: 8, a quarter of a sub-triangle's length (SURFEL_SPACING), so that
 # even a sub-triangle's thin projection (a surface nearly edge-on to the plane) is sampled
@@ -353,7 +353,7 @@ def _occluder_compiled(grid: Grid, p: np.ndarray) -> tuple[np.ndarray, np.ndarra
     face_offsets' sums add the sub-triangles' terms in their order: the chunks taken from
     the front, in order, add their own; those taken from the back log them (face, weight,
     weighted distance), added after, chunk by chunk, in order."""
-    from .ordinates import _pool, pool_workers
+    from .propagation.ordinates import _pool, pool_workers
 
     r = grid.resolution
     m = COVERAGE_SAMPLES
@@ -461,7 +461,7 @@ def _clear(hit, total, moment, busy, b0, b1):
 def _coverage_compiled(grid: Grid, tri: np.ndarray, m: int, out: np.ndarray) -> np.ndarray:
     """face_coverage by the compiled kernels: _project_subs' records and window, then the
     planes' coverage in parts on the pool."""
-    from .ordinates import _pool
+    from .propagation.ordinates import _pool
 
     r = grid.resolution
     rec = np.empty((3, tri.shape[0], _RECORD))
@@ -484,7 +484,7 @@ def _coverage_compiled(grid: Grid, tri: np.ndarray, m: int, out: np.ndarray) -> 
 def _run_parts(pool, part, work: np.ndarray, windows: np.ndarray, r: int) -> None:
     """part((b0, b1), window) for the planes' parts (_parts), shared by this thread and the
     pool's (_front_back); window: the largest of the runs' windows (3, 2)."""
-    from .ordinates import pool_workers
+    from .propagation.ordinates import pool_workers
 
     bounds = np.empty(_CHUNKS * pool_workers() + 1, np.int64)
     window = np.zeros((3, 2))
@@ -502,7 +502,7 @@ def _front_back(pool, front, back, count: int) -> list[int]:
     back(j) in descending order on the pool's other threads, until they meet; returns the
     chunks back did, ascending. This thread never waits for a pool thread that has not
     started (a busy machine's other core): it does the rest itself."""
-    from .ordinates import pool_workers
+    from .propagation.ordinates import pool_workers
 
     lock = threading.Lock()
     ends = [0, count]  # the next chunk from the front, one past the next from the back

@@ -10,8 +10,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import jit, sh
+from . import sh
 from .grid import Grid
+from .runtime import jit
 
 
 def trilinear_corners(coords: np.ndarray, resolution: int):
@@ -161,7 +162,7 @@ def _inject_compiled(grid: Grid, positions, normals, flux, offset_cells, visibil
         acc, touched = _sums(cells)
         _splat_box(args, n, acc, touched, cells, whole, flat)
     else:  # two slabs of one sum grid on two threads (the kernel releases the GIL)
-        from .ordinates import _pool
+        from .propagation.ordinates import _pool
 
         acc, touched = _sums(cells)
         job = _pool().submit(_splat_box, args, n, acc, touched, cells + 1, slabs[1], flat)
@@ -185,7 +186,7 @@ def _splat_box(args: tuple, n: int, acc, touched, spare: int, box, out) -> None:
 def _splat_halves(args: tuple, n: int, whole, out) -> None:
     """The VPLs in two halves on two threads (the kernel releases the GIL), each into sums of
     its own, ``out`` (R^3, 12) their sum."""
-    from .ordinates import _pool
+    from .propagation.ordinates import _pool
 
     cells = out.shape[0]
     (acc, touched), (acc2, touched2) = _sums(cells), _sums(cells)

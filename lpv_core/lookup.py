@@ -12,9 +12,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import closure, jit, ordinates, sh
+from . import sh
 from .grid import Grid
 from .injection import trilinear_corners, visible_corners
+from .propagation import closure, ordinates
+from .runtime import jit
 
 REPROJECTION_GAIN = np.pi / (sh.C0**2 + sh.C1**2)  # = 12/7
 OFFSET_CELLS = 0.5  # receivers read half a cell along their normal [KD10 sec. 4.4]

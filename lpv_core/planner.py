@@ -25,10 +25,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import cascades as cascades_mod
-from . import geometry_volume, injection, jit
-from . import lights as lights_mod
+from . import geometry_volume, injection
 from .grid import Grid, fit_grid
-from .scene import Light, Scene, cross3
+from .runtime import jit
+from .scene import lights as lights_mod
+from .scene.model import Light, Scene, cross3
 
 # Cells outside a grid's box from which a VPL still reaches its cells (see module docstring):
 # the normal offset of injection.inject plus half a cell of trilinear splat to the cell centre.

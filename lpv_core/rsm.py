@@ -12,10 +12,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import jit, ordinates
-from . import lights as lights_mod
-from .raster import TRIANGLE_SPLIT, Rasterizer
-from .scene import Light
+from .propagation import ordinates
+from .render.raster import TRIANGLE_SPLIT, Rasterizer
+from .runtime import jit
+from .scene import lights as lights_mod
+from .scene.model import Light
 
 
 @dataclass

@@ -1,7 +1,23 @@
-"""The LPV worker process: runs GL work (RSM) away from Blender's own GPU context.
+"""Long-running LPV worker for Blender's UI: ``python -m lpv_core.worker``.
 
-moderngl inside Blender's process breaks Blender's drawing (design.md), so the add-on sends the
-scene's arrays to ``python -m lpv_core.worker IN.npz OUT.npz`` and reads the VPLs back.
+moderngl inside Blender's process breaks Blender's drawing (design.md), so the live viewport
+and the UI's batch/compare operators run the whole engine here, in a child process that keeps
+its GL context, rasteriser and shader cache warm between requests.
+
+Protocol: one JSON object per line on stdin, one JSON reply per line on stdout (library prints
+go to stderr). Bulk arrays travel as .npz files in a folder the client owns:
+
+    {"id": 1, "cmd": "update", "scene": "in.npz", "reply": "out.npz"}
+        -> {"id": 1, "ok": true, "stats": {...}, "has_gi": true}
+           out.npz: grid origin/cell_size/resolution, values (R,R,R,3,K) float32 (K = 9 SH
+           coefficients for angular="dom", else 4), per-light and inner-cascade grids of
+           the same K, a VPL sample, the propagation visibility (occlusion, clip areas) and
+           the occluders' cell gaps (geometry_volume.cell_gaps, lookup.gap_corrected) if any
+    {"id": 2, "cmd": "render", "scene": "in.npz", "exr": "f.exr", "passes": "p.npz"}
+        -> deferred render of the scene's camera: EXR (atomic) and/or passes npz
+    {"id": 3, "cmd": "quit"}
+Errors reply {"id": n, "ok": false, "error": "one line"}; the worker keeps serving. It exits on
+"quit" or when stdin closes (the parent went away).
 """
 
 from __future__ import annotations
@@ -9,88 +25,221 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
-import subprocess
 import sys
-import tempfile
-from pathlib import Path
+import traceback
 
 import numpy as np
 
-from .scene import Light, Scene
+from .propagation import closure
+from .scene.model import Area, Camera, GISettings, Light, Material, Scene
 
-PACKAGE_PARENT = str(Path(__file__).resolve().parents[1])
-
-
-def _light_to_json(light: Light) -> dict:
-    d = dataclasses.asdict(light)
-    return {k: (np.asarray(v).tolist() if isinstance(v, (np.ndarray, tuple)) else v)
-            for k, v in d.items()}
+# ------------------------------------------------------------------------ scene <-> npz
 
 
-def _light_from_json(d: dict) -> Light:
-    d = dict(d)
-    d["matrix"] = np.asarray(d["matrix"], np.float64)
-    d["color"] = np.asarray(d["color"], np.float32)
-    d["size"] = tuple(d["size"])
-    return Light(**d)
+def _plain(value):
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, tuple):
+        return list(value)
+    if isinstance(value, (np.floating, np.integer)):
+        return value.item()
+    return value
 
 
-def save_request(path: str, scene: Scene, resolution: int) -> None:
-    """Write what the worker needs for the RSMs of ``scene``'s lights."""
-    lo, hi = scene.bounds()
-    np.savez(
-        path,
-        positions=scene.positions, normals=scene.normals,
-        albedo=scene.albedo_per_triangle(), reflectance=scene.reflectance_per_triangle(),
-        bounds=np.stack([lo, hi]), resolution=np.int64(resolution),
-        lights=np.array(json.dumps([_light_to_json(li) for li in scene.lights])),
+def _as_json(obj) -> dict:
+    return {k: _plain(v) for k, v in dataclasses.asdict(obj).items()}
+
+
+def save_scene(path: str, scene: Scene) -> None:
+    """Write a core Scene (everything the engine and the deferred renderer use) to ``path``."""
+    arrays = {
+        "positions": scene.positions, "normals": scene.normals,
+        "material_index": scene.material_index,
+    }
+    for name in ("caster", "occluder", "receiver", "object_index"):
+        value = getattr(scene, name)
+        if value is not None:
+            arrays[name] = np.asarray(value)
+    meta = {
+        "materials": [_as_json(m) for m in scene.materials],
+        "lights": [_as_json(li) for li in scene.lights],
+        "areas": [_as_json(a) for a in scene.areas],
+        "settings": scene.settings.as_dict(),
+        "object_names": list(scene.object_names),
+        "dropped": dict(scene.dropped),
+        "camera": None if scene.camera is None else _as_json(scene.camera),
+    }
+    arrays["meta"] = np.array(json.dumps(meta))
+    tmp = path + ".tmp.npz"
+    np.savez(tmp, **arrays)
+    os.replace(tmp, path)
+
+
+def _dataclass(cls, data: dict, arrays: dict):
+    names = {f.name for f in dataclasses.fields(cls)}
+    kw = {k: v for k, v in data.items() if k in names}
+    for key, dtype in arrays.items():
+        if kw.get(key) is not None:
+            kw[key] = np.asarray(kw[key], dtype)
+    return cls(**kw)
+
+
+def load_scene(path: str) -> Scene:
+    data = np.load(path)
+    meta = json.loads(str(data["meta"]))
+    materials = [_dataclass(Material, m, {"albedo": np.float32, "bleed_color": np.float32})
+                 for m in meta["materials"]]
+    lights = []
+    for d in meta["lights"]:
+        light = _dataclass(Light, d, {"matrix": np.float64, "color": np.float32,
+                                      "gi_color": np.float32})
+        light.size = tuple(light.size)
+        lights.append(light)
+    areas = [_dataclass(Area, a, {"matrix": np.float64, "tint": np.float32})
+             for a in meta["areas"]]
+    camera = None
+    if meta["camera"] is not None:
+        camera = _dataclass(Camera, meta["camera"], {"view": np.float64,
+                                                     "projection": np.float64})
+        camera.resolution = tuple(int(v) for v in camera.resolution)
+    settings = GISettings().updated(**{k: v for k, v in meta["settings"].items()
+                                       if k in GISettings.__dataclass_fields__})
+    opt = {k: (data[k] if k in data.files else None)
+           for k in ("caster", "occluder", "receiver", "object_index")}
+    return Scene(
+        positions=data["positions"], normals=data["normals"],
+        material_index=data["material_index"], materials=materials, lights=lights,
+        camera=camera, settings=settings, object_names=meta["object_names"],
+        dropped=meta["dropped"], areas=areas, **opt,
     )
 
 
-def serve(request: str, reply: str) -> None:
-    """Compute the RSM of every light in ``request`` and write VPL arrays to ``reply``."""
-    from .raster import Rasterizer
-    from .rsm import render_rsm
+# ----------------------------------------------------------------------------- replies
 
-    req = np.load(request)
-    raster = Rasterizer()
-    raster.upload(req["positions"], req["normals"], req["albedo"], req["reflectance"])
-    lights = [_light_from_json(d) for d in json.loads(str(req["lights"]))]
-    bounds = (req["bounds"][0], req["bounds"][1])
+
+def _cosine_table(n: int = 64):
+    """E[max(0, <c, w>)] over (mean cosine, <c, d>) for the "m1" lookup, or None."""
+    try:
+        from .propagation import closure
+    except ImportError:
+        return None
+    r = np.linspace(0.0, closure.MAX_MEAN_COSINE, n)
+    t = np.linspace(-1.0, 1.0, n + 1)
+    return closure.cosine_expectation(r[:, None], t[None, :]).astype(np.float32)
+
+
+def save_result(path: str, result, scene: Scene) -> None:
+    """Write an LPVResult for the viewport: combined, per-light and inner-cascade grids
+    ((R,R,R,3,K) float32, K = 4 or 9 coefficients, written as they are), VPLs, visibility,
+    the cell gaps of each cascade ("gaps", "fine_{i}_gaps": (6,R,R,R) float32) where not None."""
     out = {}
-    for i, light in enumerate(lights):
-        rsm = render_rsm(raster, light, bounds, int(req["resolution"]))
-        out[f"position_{i}"], out[f"normal_{i}"] = rsm.position, rsm.normal
-        out[f"flux_{i}"], out[f"area_{i}"] = rsm.flux, rsm.area
-    tmp = reply + ".tmp.npz"
-    np.savez(tmp, count=np.int64(len(lights)), **out)
-    os.replace(tmp, reply)
-    raster.release()
+    if result.grid is not None:
+        out["origin"] = np.asarray(result.grid.origin, np.float64)
+        out["cell_size"] = np.float64(result.grid.cell_size)
+        out["resolution"] = np.int64(result.grid.resolution)
+    if result.values is not None:
+        out["values"] = result.values.astype(np.float32)
+    names = sorted(result.per_light)
+    out["light_names"] = np.array(json.dumps(names))
+    for i, name in enumerate(names):
+        out[f"light_{i}"] = result.per_light[name].astype(np.float32)
+    vp = [result.vpls[n] for n in sorted(getattr(result, "vpls", {}) or {})]
+    if vp:
+        out["vpl_position"] = np.concatenate([p for p, _ in vp]).astype(np.float32)
+        out["vpl_flux"] = np.concatenate([f for _, f in vp]).astype(np.float32)
+    visibility = getattr(result, "visibility", None)
+    if isinstance(visibility, np.ndarray):
+        out["visibility"] = visibility.astype(np.float32)  # (6, R, R, R): lookups use it
+    gaps = getattr(result, "gaps", None) or {}
+    if result.grid is not None and gaps.get(result.grid) is not None:
+        out["gaps"] = np.asarray(gaps[result.grid], np.float32)  # (6, R, R, R)
+    fine = list(getattr(result, "fine", None) or [])  # inner cascades, finest first
+    out["fine_count"] = np.int64(len(fine))
+    for i, (grid, values, vis) in enumerate(fine):
+        out[f"fine_{i}_origin"] = np.asarray(grid.origin, np.float64)
+        out[f"fine_{i}_cell_size"] = np.float64(grid.cell_size)
+        out[f"fine_{i}_resolution"] = np.int64(grid.resolution)
+        out[f"fine_{i}_values"] = np.asarray(values, np.float32)
+        if vis is not None:
+            out[f"fine_{i}_visibility"] = np.asarray(vis, np.float32)
+        if gaps.get(grid) is not None:
+            out[f"fine_{i}_gaps"] = np.asarray(gaps[grid], np.float32)
+    if getattr(scene.settings, "angular", "sh") in closure.LOBE_MODELS:
+        table = _cosine_table()
+        if table is not None:
+            out["cosine_table"] = table
+    tmp = path + ".tmp.npz"
+    np.savez(tmp, **out)
+    os.replace(tmp, path)
 
 
-def rsm_in_subprocess(scene: Scene, resolution: int, python: str | None = None) -> list[dict]:
-    """RSM VPLs per light computed in a child process (safe inside Blender's UI process)."""
-    with tempfile.TemporaryDirectory(prefix="lpv_worker_") as tmp:
-        request, reply = os.path.join(tmp, "in.npz"), os.path.join(tmp, "out.npz")
-        save_request(request, scene, resolution)
-        env = dict(os.environ)
-        env["PYTHONPATH"] = os.pathsep.join([PACKAGE_PARENT] + sys.path)
-        proc = subprocess.run(
-            [python or sys.executable, "-m", "lpv_core.worker", request, reply],
-            env=env, capture_output=True, text=True, check=False,
-        )
-        if proc.returncode != 0:
-            tail = (proc.stderr or proc.stdout).strip().splitlines()[-1:]
-            raise RuntimeError(f"LPV worker failed ({proc.returncode}): {' '.join(tail)}")
-        data = np.load(reply)
-        return [
-            {k: data[f"{k}_{i}"] for k in ("position", "normal", "flux", "area")}
-            for i in range(int(data["count"]))
-        ]
+class Server:
+    """Serves requests with one Engine (GL context and rasteriser stay warm)."""
+
+    def __init__(self):
+        from .engine import Engine
+
+        self.engine = Engine()
+
+    def handle(self, req: dict) -> dict:
+        from .engine import Stats
+        from .render import deferred, exr
+
+        cmd = req.get("cmd")
+        if cmd == "ping":
+            return {"pid": os.getpid()}
+        scene = load_scene(req["scene"])
+        stats = Stats()
+        # Interactive updates may shift cascades for a camera move and refresh afterwards.
+        result = self.engine.update(scene, stats, reproject=cmd == "update")
+        if cmd == "update":
+            save_result(req["reply"], result, scene)
+            return {"stats": stats.as_dict(), "has_gi": result.values is not None,
+                    "refresh_pending": bool(stats.info.get("refresh_pending"))}
+        if cmd == "render":
+            passes = deferred.render(self.engine, scene, result, stats)
+            if req.get("exr"):
+                exr.write_multilayer(req["exr"], passes)
+            if req.get("passes"):
+                tmp = req["passes"] + ".tmp.npz"
+                np.savez(tmp, **{k.replace(" ", "_"): v for k, v in passes.items()})
+                os.replace(tmp, req["passes"])
+            return {"stats": stats.as_dict(), "has_gi": result.values is not None}
+        raise ValueError(f"unknown command {cmd!r}")
+
+
+def main() -> int:
+    # Replies go to the real stdout; anything a library prints goes to stderr.
+    proto = os.fdopen(os.dup(sys.stdout.fileno()), "w", buffering=1, encoding="utf-8")
+    sys.stdout = sys.stderr
+    server = None
+    for line in sys.stdin:
+        line = line.strip()
+        if not line:
+            continue
+        try:
+            req = json.loads(line)
+        except json.JSONDecodeError as exc:
+            proto.write(json.dumps({"id": None, "ok": False, "error": f"bad request: {exc}"}))
+            proto.write("\n")
+            continue
+        if req.get("cmd") == "quit":
+            proto.write(json.dumps({"id": req.get("id"), "ok": True}) + "\n")
+            break
+        try:
+            if server is None:
+                server = Server()
+            reply = {"id": req.get("id"), "ok": True, **server.handle(req)}
+        except Exception as exc:  # noqa: BLE001 - every failure becomes a one-line reply
+            traceback.print_exc(file=sys.stderr)
+            msg = str(exc).strip().splitlines()
+            reply = {"id": req.get("id"), "ok": False,
+                     "error": f"{type(exc).__name__}: {msg[-1] if msg else ''}"}
+        proto.write(json.dumps(reply) + "\n")
+    if server is not None and server.engine._raster is not None:
+        server.engine._raster.release()
+    return 0
 
 
 if __name__ == "__main__":
-    if len(sys.argv) != 3:
-        print("usage: python -m lpv_core.worker REQUEST.npz REPLY.npz", file=sys.stderr)
-        sys.exit(2)
-    serve(sys.argv[1], sys.argv[2])
+    sys.exit(main())

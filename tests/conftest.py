@@ -25,9 +25,9 @@ CACHE = Path(os.environ.get("LPV_TEST_CACHE", ROOT / ".cache" / "tests"))
 
 @pytest.fixture(scope="module")
 def gl():
-    """lpv_core.gl_backend with a working compute context, or the test is skipped."""
+    """lpv_core.gl.backend with a working compute context, or the test is skipped."""
     try:
-        from lpv_core import gl_backend
+        from lpv_core.gl import backend as gl_backend
 
         be = gl_backend.backend()
         be.zeros(2).release()  # compiles and runs a compute shader

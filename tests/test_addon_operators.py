@@ -12,8 +12,9 @@ import pytest
 bpy = pytest.importorskip("bpy")
 
 import lpv_addon
-from lpv_addon import handlers, live, operators, properties, scenes
-from lpv_core import exr
+from lpv_addon import handlers, live, operators, properties
+from lpv_core.render import exr
+from tools import scenes
 
 pytestmark = pytest.mark.bpy
 

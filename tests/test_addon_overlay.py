@@ -27,7 +27,8 @@ import json, os, sys
 import bpy, gpu
 import numpy as np
 import lpv_addon
-from lpv_addon import live, overlay, scenes
+from lpv_addon import live, overlay
+from tools import scenes
 
 W = H = int(sys.argv[2])
 out = sys.argv[1]
@@ -61,7 +62,8 @@ def shot(mode, clear=(0, 0, 0, 0), **kw):
     buf.dimensions = W * H * 4
     return np.array(buf.to_list(), np.float32).reshape(H, W, 4)[::-1]  # top row first
 
-from lpv_core import deferred, live_worker, lookup, sh
+from lpv_core.render import deferred
+from lpv_core import worker as live_worker, lookup, sh
 from lpv_core.grid import Grid
 from lpv_core.scene import GISettings
 # The default model ("dom": 9 SH coefficients per colour) for most shots; each model is

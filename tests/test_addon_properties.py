@@ -11,7 +11,8 @@ import pytest
 bpy = pytest.importorskip("bpy")
 
 import lpv_addon
-from lpv_addon import extract, properties, scenes
+from lpv_addon import extract, properties
+from tools import scenes
 
 pytestmark = pytest.mark.bpy
 

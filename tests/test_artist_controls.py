@@ -9,9 +9,10 @@ import dataclasses
 import numpy as np
 import pytest
 
-from lpv_core import areas, deferred, demo, engine, lookup
+from lpv_core import areas, engine, lookup
 from lpv_core.grid import Grid
-from lpv_core.scene import Area, GISettings, Light, Material, make_scene
+from lpv_core.render import deferred
+from lpv_core.scene import Area, GISettings, Light, Material, demo, make_scene
 
 
 def _settings(**kw) -> GISettings:
@@ -321,7 +322,8 @@ def test_transition_area_scales_gi_inside_with_smooth_falloff(eng):
 
 def test_keyframed_global_intensity_changes_across_batch_frames(tmp_path):
     bpy = pytest.importorskip("bpy")
-    from lpv_addon import batch, properties, scenes
+    from lpv_addon import batch, properties
+    from tools import scenes
 
     registered = hasattr(bpy.types.Scene, "lpv")
     if not registered:
@@ -342,7 +344,7 @@ def test_keyframed_global_intensity_changes_across_batch_frames(tmp_path):
             properties.unregister()
     import json
 
-    from lpv_core import exr
+    from lpv_core.render import exr
 
     stats = json.loads((tmp_path / "stats.json").read_text())
     got = [f["intensity"] for f in stats["frames"]]
@@ -358,7 +360,8 @@ def test_keyframed_global_intensity_changes_across_batch_frames(tmp_path):
 BLEND_SCRIPT = r"""
 import sys
 import bpy
-from lpv_addon import properties, scenes
+from lpv_addon import properties
+from tools import scenes
 properties.register()
 scenes.cornell_box("SPOT", resolution=(32, 32))
 scene = bpy.context.scene
@@ -383,7 +386,7 @@ def test_batch_cli_reads_the_blends_gi_settings_and_keyframes(tmp_path):
 
     from conftest import ROOT
 
-    from lpv_core import exr
+    from lpv_core.render import exr
 
     pytest.importorskip("bpy")
     blend = tmp_path / "keyed.blend"

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from conftest import ROOT
 
-from lpv_core import exr
+from lpv_core.render import exr
 
 
 def _cli(*args):

@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 from conftest import ROOT
 
-from lpv_core import bench_sweep
 from lpv_core.scene import GISettings
+from tools import bench_sweep
 
 QUICK_KEYS = ("full_update_ms", "light_intensity_tweak_ms", "one_light_moved_ms",
               "camera_in_cell_ms")
@@ -24,7 +24,7 @@ QUICK_KEYS = ("full_update_ms", "light_intensity_tweak_ms", "one_light_moved_ms"
 @pytest.fixture(scope="module")
 def quick_json() -> dict:
     """One run of the CLI as documented: --quick --json plus the tiny sweep."""
-    proc = subprocess.run([sys.executable, "-m", "lpv_core.bench", "--quick", "--json",
+    proc = subprocess.run([sys.executable, "-m", "tools.bench", "--quick", "--json",
                            "--sweep-quick"], check=False, cwd=ROOT, capture_output=True,
                           text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -182,7 +182,8 @@ def test_step_counts_dom_follow_the_algorithm():
 def test_dom_step_is_the_propagation_loop():
     """bench_sweep.dom_step (what the dense dom rows time) is one step of
     propagation._propagate_ordinates: the same result after the same number of steps."""
-    from lpv_core import ordinates, propagation
+    from lpv_core import propagation
+    from lpv_core.propagation import ordinates
 
     rng = np.random.default_rng(3)
     r = 6

@@ -4,8 +4,9 @@ over an s x s grid in the pixel, i.e. the box-filtered image of s times the reso
 import numpy as np
 import pytest
 
-from lpv_core import deferred, demo, engine
-from lpv_core.scene import GISettings
+from lpv_core import engine
+from lpv_core.render import deferred
+from lpv_core.scene import GISettings, demo
 
 
 def test_antialias_is_the_box_filtered_finer_image():
@@ -51,8 +52,8 @@ def test_shadow_map_depths_of_a_floor_are_the_analytic_distances(kind, offset):
     a spot's map holds |p - light| = 2 / cos(angle) at every covered texel (its minimum 2 m,
     straight down), a sun pointing down the same depth 2 m + the view's near offset
     everywhere; float32 distances from the rasteriser's origin keep 1e-4 m at 1e5 m."""
-    from lpv_core import direct
-    from lpv_core.raster import Rasterizer
+    from lpv_core.render import direct
+    from lpv_core.render.raster import Rasterizer
     from lpv_core.scene import Light
 
     shift = np.full(3, offset)

@@ -1,4 +1,4 @@
-"""lpv_core.exr: Blender-layout multi-layer EXR writer/reader (no bpy needed)."""
+"""lpv_core.render.exr: Blender-layout multi-layer EXR writer/reader (no bpy needed)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 import OpenEXR
 import pytest
 
-from lpv_core import exr
+from lpv_core.render import exr
 
 # Channel names exactly as Blender 5.0.1 / Cycles wrote them into a multi-layer EXR (one
 # part per pass, file order within a part is alphabetical as OpenEXR requires).

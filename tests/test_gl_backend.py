@@ -8,9 +8,10 @@ can only be compared to the grid's scale). The figures are printed (pytest -s).
 import numpy as np
 import pytest
 
-from lpv_core import deferred, demo, engine, injection, lookup, propagation
+from lpv_core import engine, injection, lookup, propagation
 from lpv_core.grid import Grid
-from lpv_core.scene import GISettings
+from lpv_core.render import deferred
+from lpv_core.scene import GISettings, demo
 
 RTOL = 1e-4
 

@@ -8,8 +8,10 @@ import pytest
 
 pytest.importorskip("numba")
 
-from lpv_core import demo, direct, engine, jit
-from lpv_core.scene import GISettings
+from lpv_core import engine
+from lpv_core.render import direct
+from lpv_core.runtime import jit
+from lpv_core.scene import GISettings, demo
 
 pytestmark = pytest.mark.skipif(not jit.enabled(), reason="LPV_JIT=0: the kernels are off")
 

@@ -10,8 +10,10 @@ pytest.importorskip("numba")
 
 from test_jit_launch import _visibility, _vpls
 
-from lpv_core import jit, ordinates, propagation, sh
-from lpv_core import sweep as transport_sweep
+from lpv_core import propagation, sh
+from lpv_core.propagation import ordinates
+from lpv_core.propagation import sweep as transport_sweep
+from lpv_core.runtime import jit
 
 
 def _passing(r: int, seed: int) -> np.ndarray:

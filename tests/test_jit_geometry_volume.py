@@ -9,9 +9,10 @@ import pytest
 
 pytest.importorskip("numba")
 
-from lpv_core import demo, geometry_volume, jit
+from lpv_core import geometry_volume
 from lpv_core.grid import Grid, fit_grid
-from lpv_core.scene import GISettings
+from lpv_core.runtime import jit
+from lpv_core.scene import GISettings, demo
 
 pytestmark = pytest.mark.skipif(not jit.enabled(), reason="kernels turned off (LPV_JIT=0)")
 

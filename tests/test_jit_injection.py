@@ -5,8 +5,9 @@ import pytest
 
 pytest.importorskip("numba")
 
-from lpv_core import injection, jit
+from lpv_core import injection
 from lpv_core.grid import Grid
+from lpv_core.runtime import jit
 
 
 def _both(g, pos, nrm, flux, vis, offset=0.5):

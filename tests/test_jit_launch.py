@@ -6,7 +6,9 @@ import pytest
 
 pytest.importorskip("numba")
 
-from lpv_core import closure, grid, injection, jit, ordinates, propagation
+from lpv_core import grid, injection, propagation
+from lpv_core.propagation import closure, ordinates
+from lpv_core.runtime import jit
 
 
 def _vpls(r: int, seed: int, count: int = 200):

@@ -9,8 +9,9 @@ import pytest
 
 pytest.importorskip("numba")
 
-from lpv_core import jit, lookup
+from lpv_core import lookup
 from lpv_core.grid import Grid
+from lpv_core.runtime import jit
 
 pytestmark = pytest.mark.skipif(not jit.enabled(), reason="LPV_JIT=0: the kernels are off")
 

@@ -14,8 +14,10 @@ pytest.importorskip("numba")
 from test_jit_fused import _passing  # tests/ is on sys.path under pytest
 from test_jit_launch import _visibility, _vpls
 
-from lpv_core import jit, octants, ordinates, propagation, sh
-from lpv_core import sweep as transport_sweep
+from lpv_core import propagation, sh
+from lpv_core.propagation import octants, ordinates
+from lpv_core.propagation import sweep as transport_sweep
+from lpv_core.runtime import jit
 
 pytestmark = pytest.mark.skipif(not jit.enabled(), reason="LPV_JIT=0: the kernels are off")
 
@@ -110,9 +112,9 @@ def _cornell_inputs() -> list:
     """The arguments of each propagation in a stated-quality Cornell box update (32^3,
     occlusion, the second cascade with handed-on light; in a fresh process also those of the
     backend's calibration, on a smaller grid)."""
-    from lpv_core import demo, engine
-    from lpv_core.bench import STATED
-    from lpv_core.scene import GISettings
+    from lpv_core import engine
+    from lpv_core.scene import GISettings, demo
+    from tools.bench import STATED
 
     calls = []
     real = propagation._sweep_ordinates
@@ -210,8 +212,9 @@ def test_engine_images_with_and_without_the_octant_sweep(kind, monkeypatch):
     """Every light type, three 20^3 cascades, two bounces: the Diffuse Indirect image of the
     engine on the octant sweep is the one on the per-direction kernels (launch_solve and
     fold_parts, tested against numpy) to 1e-6 of its largest value."""
-    from lpv_core import deferred, demo, engine
-    from lpv_core.scene import GISettings
+    from lpv_core import engine
+    from lpv_core.render import deferred
+    from lpv_core.scene import GISettings, demo
 
     settings = GISettings().updated(grid_resolution=20, cascades=3, cascades_auto=False,
                                     bounces=2)

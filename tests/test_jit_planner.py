@@ -7,9 +7,10 @@ import pytest
 
 pytest.importorskip("numba")
 
-from lpv_core import demo, jit, planner
+from lpv_core import planner
 from lpv_core.grid import Grid
-from lpv_core.scene import GISettings
+from lpv_core.runtime import jit
+from lpv_core.scene import GISettings, demo
 
 
 def _triangles(n: int, seed: int) -> np.ndarray:

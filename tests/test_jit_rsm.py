@@ -8,8 +8,9 @@ import pytest
 
 pytest.importorskip("numba")
 
-from lpv_core import demo, engine, jit, rsm
-from lpv_core.scene import GISettings
+from lpv_core import engine, rsm
+from lpv_core.runtime import jit
+from lpv_core.scene import GISettings, demo
 
 
 def _rsms(light_type: str, resolution: int = 64, **light_changes):
@@ -63,7 +64,7 @@ def test_rsm_pass_matches_main_pass(light_type):
     """Rasterizer.read_rsm gives read()'s position and normal targets bit for bit and the same
     coverage; its triangles' reflectance is the uploaded float32 value, which the main pass's
     interpolated target only approximates (within a few float32 ulps)."""
-    from lpv_core import lights as lights_mod
+    from lpv_core.scene import lights as lights_mod
 
     scene = demo.cornell_box(light_type, (16, 16), GISettings(), offset=(3.0, -2.0, 1.0))
     eng = engine.Engine()
@@ -83,7 +84,7 @@ def test_rsm_pass_matches_main_pass(light_type):
 
 def test_triangle_index_beyond_float_precision():
     """Indices from 2^24 on (not exact as one float32) are split over the two w channels."""
-    from lpv_core.raster import TRIANGLE_SPLIT, Rasterizer
+    from lpv_core.render.raster import TRIANGLE_SPLIT, Rasterizer
 
     index = np.array([0, 5, TRIANGLE_SPLIT - 1, TRIANGLE_SPLIT, 3 * TRIANGLE_SPLIT + 7])
     pos = np.zeros((5, 4), np.float32)

@@ -14,7 +14,8 @@ from test_jit_fused import _passing  # tests/ is on sys.path under pytest
 from test_jit_launch import _vpls
 from test_jit_octants import _assert_same, _reference
 
-from lpv_core import jit, octants
+from lpv_core.propagation import octants
+from lpv_core.runtime import jit
 
 pytestmark = pytest.mark.skipif(not (jit.enabled() and jit.X86),
                                 reason="FTZ/DAZ is x86's MXCSR; needs the kernels")

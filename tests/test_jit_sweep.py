@@ -11,7 +11,9 @@ pytest.importorskip("numba")
 
 from test_sweep import _case  # tests/ is on sys.path under pytest
 
-from lpv_core import jit, propagation, sweep
+from lpv_core import propagation
+from lpv_core.propagation import sweep
+from lpv_core.runtime import jit
 
 pytestmark = pytest.mark.skipif(not jit.enabled(), reason="LPV_JIT=0: the kernels are off")
 

@@ -5,8 +5,9 @@ import itertools
 import numpy as np
 import pytest
 
-from lpv_core import deferred, demo, engine, grid, injection, lookup, propagation, sh
-from lpv_core.scene import GISettings, Light, make_scene
+from lpv_core import engine, grid, injection, lookup, propagation, sh
+from lpv_core.render import deferred
+from lpv_core.scene import GISettings, Light, demo, make_scene
 
 
 def _sphere_dirs(n=200_000, seed=1):

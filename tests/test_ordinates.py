@@ -4,7 +4,8 @@ bookkeeping, occluders, directions kept apart, hand-on to the next cascade."""
 import numpy as np
 import pytest
 
-from lpv_core import closure, grid, injection, ordinates, propagation, sh
+from lpv_core import grid, injection, propagation, sh
+from lpv_core.propagation import closure, ordinates
 
 
 def _random_moments(r=8, seed=3):
@@ -147,8 +148,9 @@ def test_a_grid_too_large_for_memory_is_refused_before_any_work(iterations, figu
     """grid_resolution 128 would need ~12.7 GB for the sweep (automatic iterations) or
     ~6.7 GB for the steps: a clear error naming the setting, raised by the engine before the
     RSM is rendered (not a MemoryError later)."""
-    from lpv_core import demo, engine, sweep
-    from lpv_core.scene import GISettings
+    from lpv_core import engine
+    from lpv_core.propagation import sweep
+    from lpv_core.scene import GISettings, demo
 
     ordinates.check_memory(64)  # ~0.9 GB: fine
     sweep.check_memory(64)  # ~2.4 GB: fine

@@ -4,10 +4,10 @@
 import numpy as np
 import pytest
 
-from lpv_core import cascades, demo, geometry_volume, injection, planner
+from lpv_core import cascades, geometry_volume, injection, planner
 from lpv_core.engine import Stats
 from lpv_core.grid import Grid, fit_grid
-from lpv_core.scene import Camera, GISettings, Light, make_scene
+from lpv_core.scene import Camera, GISettings, Light, demo, make_scene
 
 BOX_LO, BOX_HI = np.array([4.0, -1.0, -1.0]), np.array([6.0, 1.0, 1.0])
 
@@ -205,7 +205,7 @@ def test_record_reports_skips_to_stats():
 
 @pytest.fixture(scope="module")
 def raster():
-    from lpv_core.raster import Rasterizer
+    from lpv_core.render.raster import Rasterizer
 
     r = Rasterizer()
     yield r

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from conftest import CACHE, ROOT
 
-from lpv_core import exr
+from lpv_core.render import exr
 
 sys.path.insert(0, str(ROOT / "tools"))
 from make_references import ensure_reference
@@ -155,8 +155,8 @@ def test_multiple_bounces_match_cycles_with_four_diffuse_bounces(tmp_path):
 
 def test_multiple_bounces_run_with_cascades_and_converge():
     """Bounces work on a cascade chain: more bounces add light, each less than the last."""
-    from lpv_core import demo, engine
-    from lpv_core.scene import GISettings
+    from lpv_core import engine
+    from lpv_core.scene import GISettings, demo
 
     means = []
     for bounces in (1, 2, 3):

@@ -21,8 +21,9 @@ import pytest
 
 bpy = pytest.importorskip("bpy")
 
-from lpv_addon import reference, scenes
-from lpv_core import exr
+from lpv_addon import reference
+from lpv_core.render import exr
+from tools import scenes
 
 pytestmark = pytest.mark.bpy
 

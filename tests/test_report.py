@@ -1,5 +1,5 @@
 """The error-vs-time report: sweep construction, error measures, curve helpers, and one
-end-to-end run of the real command, `python -m lpv_addon.report --quick` (issue 5: part of the
+end-to-end run of the real command, `python -m tools.report --quick` (issue 5: part of the
 tests and under 10 minutes; the Cornell box at 128x128, a 512-spp reference, the quick settings
 sweep, Cycles at 1-256 spp, the stability suite at test sizes: about 70 s here on 2 cores).
 """
@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 from conftest import CACHE, ROOT
 
-from lpv_addon import report
 from lpv_core.scene import GISettings
+from tools import report
 
 # ---------------------------------------------------------------------------------------------
 # Sweep construction
@@ -159,7 +159,7 @@ def quick(tmp_path_factory):
     out = tmp_path_factory.mktemp("report")
     t0 = time.perf_counter()
     proc = subprocess.run(
-        [sys.executable, "-m", "lpv_addon.report", "--quick", "--out", str(out),
+        [sys.executable, "-m", "tools.report", "--quick", "--out", str(out),
          "--cache", str(CACHE / "report"), "--fresh-cycles"],
         cwd=ROOT, capture_output=True, text=True, check=False, timeout=600)  # issue 5: < 10 min
     seconds = time.perf_counter() - t0
@@ -203,7 +203,7 @@ def test_readme_can_be_rewritten_from_results_json(quick):
     out, _, _ = quick
     before = (out / "README.md").read_text()
     (out / "README.md").unlink()
-    proc = subprocess.run([sys.executable, "-m", "lpv_addon.report", "--readme-only", "--out",
+    proc = subprocess.run([sys.executable, "-m", "tools.report", "--readme-only", "--out",
                            str(out)], cwd=ROOT, capture_output=True, text=True, check=False)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert (out / "README.md").read_text() == before

@@ -6,9 +6,9 @@ reason for its bound.
 import numpy as np
 import pytest
 
-from lpv_core import cascades, demo, engine, geometry_volume, injection, lookup
+from lpv_core import cascades, engine, geometry_volume, injection, lookup
 from lpv_core.grid import Grid, fit_grid
-from lpv_core.scene import GISettings, Light, Material, make_scene
+from lpv_core.scene import GISettings, Light, Material, demo, make_scene
 
 # --------------------------------------------------------------------------------------------
 # 1. The outer grid fits the geometry that matters (cascades.fit_bounds)

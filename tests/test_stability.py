@@ -1,7 +1,7 @@
 """Stability suite invariants (lpv_core/stability.py) at the suite's "test" sizes.
 
 One run of every case (a few seconds) feeds all assertions. Tolerances and their reasons are
-in lpv_core.stability.TOLERANCES: the engine is covariant under scaling and translation and
+in tools.stability.TOLERANCES: the engine is covariant under scaling and translation and
 linear in light power and (one bounce) albedo in exact arithmetic; float32 rounding remains.
 """
 
@@ -10,7 +10,8 @@ import math
 import numpy as np
 import pytest
 
-from lpv_core import propagation, stability
+from lpv_core import propagation
+from tools import stability
 
 TOL = stability.TOLERANCES
 

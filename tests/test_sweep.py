@@ -7,19 +7,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lpv_core import (
-    demo,
-    engine,
-    geometry_volume,
-    injection,
-    lookup,
-    ordinates,
-    propagation,
-    sh,
-    sweep,
-)
+from lpv_core import engine, geometry_volume, injection, lookup, propagation, sh
 from lpv_core.grid import Grid
-from lpv_core.scene import GISettings
+from lpv_core.propagation import ordinates, sweep
+from lpv_core.scene import GISettings, demo
 
 
 def _case(r: int, seed: int = 1, wall: bool = True):

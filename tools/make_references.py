@@ -58,7 +58,8 @@ def _import_bpy_side():
     )
     if str(ROOT) not in sys.path:
         sys.path.insert(0, str(ROOT))
-    from lpv_addon import reference, scenes
+    from lpv_addon import reference
+    from tools import scenes
 
     return scenes, reference
 
@@ -208,7 +209,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--samples", type=int, default=DEFAULT_SAMPLES)
     p.add_argument("--bounces", type=int, default=1, help="diffuse (and max) bounces")
     p.add_argument("--scenes", default=",".join(DEFAULT_SCENES),
-                   help="comma-separated scene names (see lpv_addon.scenes.SCENES)")
+                   help="comma-separated scene names (see tools.scenes.SCENES)")
     p.add_argument("--resolution", type=_parse_resolution, default=None,
                    help="WxH (default: each scene's own, 128x128)")
     p.add_argument("--cached", action="store_true",

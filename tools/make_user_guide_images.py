@@ -35,7 +35,8 @@ import numpy as np
 from mathutils import Matrix
 
 import lpv_addon
-from lpv_addon import live, operators, overlay, scenes, ui
+from lpv_addon import live, operators, overlay, ui
+from tools import scenes
 
 GUIDE = ROOT / "docs" / "user-guide.md"
 BEGIN, END = "<!-- panels:begin -->", "<!-- panels:end -->"

@@ -34,7 +34,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import jit, ordinates, sh
+from .. import sh
+from ..runtime import jit
+from . import ordinates
 
 SIGNED_OFFSETS = [(a, b, c) for a in (0, 1) for b in (0, 1) for c in (0, 1) if a + b + c]
 _PLANS: dict = {}

@@ -31,7 +31,9 @@ import os
 
 import numpy as np
 
-from . import closure, jit, sh
+from .. import sh
+from ..runtime import jit
+from . import closure
 
 DIRECTIONS = 64  # 128 / 256: sunlit room 0.517 -> 0.501 / 0.496 (1.5x / 2.6x time); session 5, swept
 # and launched, 128: sunlit 0.422 -> 0.410, Cornell spot 0.197 -> 0.195, point room 0.150 -> 0.148
@@ -42,7 +44,7 @@ def tables(q: int | None = None):
     """Directions sorted by octant (q, 3), their SH basis (q, 4), and per octant the slice of
     its directions and, for each of its 8 neighbour offsets, (offset index into
     propagation.OFFSETS, offset, trilinear weights (n, 1, 1, 1, 1))."""
-    from .propagation import OFFSETS, quadrature_directions  # propagation imports this module
+    from . import OFFSETS, quadrature_directions
 
     q = q or DIRECTIONS
     if q not in _TABLES:

@@ -11,9 +11,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import areas, direct, lookup
-from .engine import Engine, LPVResult, Stats, Timer
-from .scene import Scene
+from .. import areas, lookup
+from ..engine import Engine, LPVResult, Stats, Timer
+from ..scene.model import Scene
+from . import direct
 
 VIEWER_NUDGE_CELLS = 0.02  # toward_viewer's distance in cells of the finest cascade
 PASS_NAMES = ("Combined", "Diffuse Direct", "Diffuse Indirect", "Diffuse Color")

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import sh
+from .. import sh
 
 # Flux-weighted mean cosine of a diffuse emitter's light, int cos^2 / int cos = 2/3: the
 # injected VPL lobe, the emission reading's cos^1 and propagation's cap (propagation._m1_tables).

@@ -1,6 +1,6 @@
 """Benchmark: per-stage medians of the LPV update and render on the built-in Cornell box.
 
-    python -m lpv_core.bench [--quick] [--json] [--repeat N] [--resolution WxH]
+    python -m tools.bench [--quick] [--json] [--repeat N] [--resolution WxH]
                              [--sweep | --sweep-quick] [--sweep-only]
 
 Prints one JSON object (--json) or a table. Times are medians over the repeats, measured in one
@@ -30,8 +30,10 @@ import time
 
 import numpy as np
 
-from . import deferred, demo, engine, jit
-from .scene import GISettings
+from lpv_core import engine
+from lpv_core.render import deferred
+from lpv_core.runtime import jit
+from lpv_core.scene import GISettings, demo
 
 
 def run(repeat: int, resolution: tuple[int, int], settings: GISettings) -> dict:
@@ -165,7 +167,7 @@ def incremental(repeat: int, settings: GISettings) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m lpv_core.bench", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(prog="python -m tools.bench", description=__doc__.split("\n")[0])
     p.add_argument("--quick", action="store_true", help="3 repeats at 128x128")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--repeat", type=int, default=None)
@@ -193,7 +195,7 @@ def main(argv: list[str] | None = None) -> int:
         out["stated"] = stated(max(repeat, STATED_REPEAT))
         out["full_update_stated_ms"] = out["stated"]["full_update_ms"]
     if args.sweep or args.sweep_quick:
-        from . import bench_sweep
+        from tools import bench_sweep
 
         out["sweep"] = bench_sweep.run_sweep(quick=args.sweep_quick)
     if args.json:
@@ -214,7 +216,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"  one light moved / full update with 8 lights: "
               f"{out['one_light_moved_over_full_8']:.3f}")
     if "sweep" in out:
-        from . import bench_sweep
+        from tools import bench_sweep
 
         print()
         print(bench_sweep.table(out["sweep"]))

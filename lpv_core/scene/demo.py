@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .scene import Camera, GISettings, Light, Material, Scene, make_scene
+from .model import Camera, GISettings, Light, Material, Scene, make_scene
 
 
 def box_triangles(lo, hi, inward: bool = False) -> np.ndarray:

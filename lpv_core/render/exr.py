@@ -20,7 +20,7 @@ import numpy as np
 try:  # OpenEXR >= 3.3 (the pybind11 API with File/Part)
     import OpenEXR
 except ImportError as exc:  # pragma: no cover - exercised only where OpenEXR is missing
-    raise ImportError("lpv_core.exr needs the OpenEXR package (pip install OpenEXR)") from exc
+    raise ImportError("lpv_core.render.exr needs the OpenEXR package (pip install OpenEXR)") from exc
 
 __all__ = [
     "ExrError",

@@ -33,7 +33,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import jit, ordinates, sh
+from .. import sh
+from ..runtime import jit
+from . import ordinates
 from . import sweep as transport_sweep
 
 LANES = 32  # floats per cell: 3 colours x 9 (or 7) directions, then VIS, padded to 4 x 8

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .scene import Light, look_at_matrix, orthographic_matrix, perspective_matrix
+from .model import Light, look_at_matrix, orthographic_matrix, perspective_matrix
 
 CUBE_DIRECTIONS = np.array(
     [[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]], np.float64

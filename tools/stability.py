@@ -29,8 +29,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import deferred, demo, engine, propagation, sh
-from .scene import Camera, GISettings, Light, Material, Scene, make_scene
+from lpv_core import engine, propagation, sh
+from lpv_core.render import deferred
+from lpv_core.scene import Camera, GISettings, Light, Material, Scene, demo, make_scene
 
 # Tolerances the tests assert (and the report draws). In exact arithmetic the engine is
 # covariant under scaling (with power x scale^2) and translation, and linear in light power and
@@ -178,7 +179,7 @@ class Runner:
     @property
     def raster(self):
         if self._raster is None:
-            from .raster import Rasterizer
+            from lpv_core.render.raster import Rasterizer
 
             self._raster = Rasterizer()
         return self._raster
@@ -293,7 +294,7 @@ def _with_extra_triangles(scene: Scene, extra: np.ndarray, material: int = 0) ->
 
 
 def _cell_size(r: Runner, lo, hi, resolution: int | None = None) -> float:
-    from .grid import fit_grid
+    from lpv_core.grid import fit_grid
 
     return fit_grid(np.asarray(lo, float), np.asarray(hi, float),
                     resolution or r.p["grid"]).cell_size
@@ -543,8 +544,8 @@ def _step_kwargs() -> list[dict]:
 
 def energy_trace(resolution: int = 16, steps: int = 1000, **step_kwargs) -> dict:
     """Flux per step of one VPL in free space and of a random grid, ``steps`` steps."""
-    from . import injection
-    from .grid import Grid
+    from lpv_core import injection
+    from lpv_core.grid import Grid
 
     g = Grid((0.0, 0.0, 0.0), 1.0, resolution)
     c = resolution / 2

@@ -81,9 +81,11 @@ from pathlib import Path
 
 import numpy as np
 
-from . import closure, jit, propagation, sh
-from .grid import Grid
-from .lookup import REPROJECTION_GAIN
+from .. import propagation, sh
+from ..grid import Grid
+from ..lookup import REPROJECTION_GAIN
+from ..propagation import closure
+from ..runtime import jit
 
 LOCAL = 64  # invocations per work group (1-D)
 MAX_GROUPS = 65535  # GL's guaranteed GL_MAX_COMPUTE_WORK_GROUP_COUNT per dimension
@@ -625,7 +627,7 @@ def _dom_layout():
     first slot, slots); its 3 x n (direction, colour) values fill ceil(3 n / 4) vec4s, value
     k = 3 i + colour of direction j0 + i at component k % 4 of slot first + k // 4 (the rest
     of the last slot is zero). Returns (octants, total slots)."""
-    from . import ordinates
+    from ..propagation import ordinates
 
     _, _, groups = ordinates.tables()
     out, slot = [], 0
@@ -705,7 +707,7 @@ def _dom_sources() -> dict:
     plus the injected grid with its band 2 from ordinates.emission_band2) or bands 0-1 (the
     outflow, 4).
     """
-    from . import ordinates
+    from ..propagation import ordinates
 
     dirs, basis, groups = ordinates.tables()
     dirs = np.asarray(dirs, np.float32)
@@ -1018,7 +1020,7 @@ class GLBackend:
 
     def __init__(self, ctx=None):
         if ctx is None:
-            from .raster import gl_context
+            from ..render.raster import gl_context
 
             ctx = gl_context()
         self.ctx = ctx
@@ -1546,7 +1548,7 @@ class GLBackend:
         keywords: the numpy code). A 9-coefficient grid (a "dom" propagation's) is read with
         sh.irradiance_weights' kernel, whatever ``angular``, as numpy reads it."""
         if angular not in ("sh",) + closure.LOBE_MODELS or extra:
-            from . import lookup
+            from .. import lookup
 
             self.fallbacks += 1
             values = values.read() if isinstance(values, GLGrid) else values
@@ -1676,7 +1678,7 @@ def measure(resolution: int = 16, vpls: int = 16384, receivers: int = 65536,
     """{stage: {backend: ms}}: the fastest of ``repeat`` interleaved runs of each stage on a
     small random grid (the minimum is the figure least disturbed by other load on the
     machine). GL figures include the transfers the engine makes."""
-    from . import injection, lookup
+    from .. import injection, lookup
 
     if gl is None:
         gl = backend()
@@ -1696,7 +1698,7 @@ def measure(resolution: int = 16, vpls: int = 16384, receivers: int = 65536,
     # sweeps; GL steps to the early stop, capped at engine.auto_iterations).
     its, stop, engine_kw = iterations, 0.0, kw
     if angular == "dom":
-        from .engine import auto_iterations
+        from ..engine import auto_iterations
 
         its, stop = auto_iterations(resolution, angular), 1e-3
         engine_kw = dict(kw, launch=True, sweep=True)

@@ -11,10 +11,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import jit, ordinates
-from . import lights as lights_mod
+from ..propagation import ordinates
+from ..runtime import jit
+from ..scene import lights as lights_mod
+from ..scene.model import Light
 from .raster import Rasterizer
-from .scene import Light
 
 
 @dataclass
@@ -40,7 +41,7 @@ def render_shadow_map(raster: Rasterizer, light: Light, bounds, resolution: int)
     the light (depth along the view for the sun), in float32 from the positions relative to
     the rasteriser's origin as they are read back (no float64 copy of the frame: a 1024^2 map
     took 100 ms that way, most of it converting and subtracting 3M floats twice)."""
-    from . import lights as lights_mod
+    from ..scene import lights as lights_mod
 
     views, depths = [], []
     origin = np.asarray(raster.origin, np.float64)

@@ -1,10 +1,10 @@
 """Error against run time of LPV GI versus Cycles, and the stability suite: the report.
 
-    python -m lpv_addon.report [--quick] [--out docs/report] [--scenes a,b]
+    python -m tools.report [--quick] [--out docs/report] [--scenes a,b]
                                [--resolution WxH] [--cache DIR] [--fresh-cycles]
                                [--no-stability]
 
-For every scene (lpv_addon.scenes) it
+For every scene (tools.scenes) it
 1. renders a high-sample Cycles reference (one diffuse bounce; four for the multi-bounce rows)
    through tools/make_references.ensure_reference, cached on disk by scene content hash;
 2. opens the reference's .blend, extracts the core scene (lpv_addon.extract) and renders it
@@ -146,7 +146,7 @@ def _string_choices(name: str, default: str) -> tuple[str, ...]:
     import importlib
     import pkgutil
 
-    from ._core import core
+    import lpv_core as core
 
     stem = name.upper()
     found: list[tuple[str, ...]] = []
@@ -369,7 +369,7 @@ def _ensure_reference(name, cache, samples, bounces, resolution):
 
 
 def _make_engine(raster):
-    from ._core import core
+    import lpv_core as core
 
     try:
         return core.engine.Engine(raster=raster)
@@ -427,7 +427,7 @@ def run_lpv(core_scene, settings, engine, repeats: int, repeat_below_s: float = 
     choice stay warm), but its incremental-update cache is cleared before every run so that
     each run computes everything; an engine without ``clear_cache`` is replaced by a fresh one
     on the same rasteriser."""
-    from ._core import core
+    import lpv_core as core
 
     sc = dataclasses.replace(core_scene, settings=settings)
     times, stages, passes, info = [], {}, None, {}
@@ -441,7 +441,7 @@ def run_lpv(core_scene, settings, engine, repeats: int, repeat_below_s: float = 
         with _time_cap(cap_s):
             t0 = time.perf_counter()
             result = eng.update(sc, stats)
-            passes = core.deferred.render(eng, sc, result, stats)
+            passes = core.render.deferred.render(eng, sc, result, stats)
             times.append(time.perf_counter() - t0)
         for k, v in stats.ms.items():
             if k not in STAGE_SKIP:
@@ -460,7 +460,7 @@ def run_lpv(core_scene, settings, engine, repeats: int, repeat_below_s: float = 
 
 def _asked_iterations(settings: dict) -> float:
     """Iterations a settings dict asks for (the engine's automatic count for 0)."""
-    from ._core import core
+    import lpv_core as core
 
     its = settings.get("iterations") or 0
     if its:
@@ -496,15 +496,15 @@ def predicted_seconds(settings, runs: list[dict]) -> float | None:
 
 
 def _read_exr(path):
-    from ._core import core
+    import lpv_core as core
 
-    return core.exr.read_multilayer(str(path))
+    return core.render.exr.read_multilayer(str(path))
 
 
 def cycles_sweep(scene, tag: str, bounces: int, samples: tuple, prof: dict, cache: Path,
                  fresh: bool) -> list[dict]:
     """Render the open scene with Cycles at each sample count; cached per scene hash (tag)."""
-    from . import reference
+    from lpv_addon import reference
 
     folder = cache / "cycles_sweep"
     folder.mkdir(parents=True, exist_ok=True)
@@ -555,8 +555,8 @@ def _multi_ref_needed(settings) -> bool:
 def run_scene(name: str, prof: dict, mode: str, cache: Path, out: Path, fresh: bool,
               resolution) -> dict:
     bpy = _import_bpy()
-    from ._core import core
-    from .extract import extract_scene
+    import lpv_core as core
+    from lpv_addon.extract import extract_scene
 
     res = tuple(resolution or prof["resolution"])
     ref_samples = prof["ref_samples_scene"].get(name, prof["ref_samples"])
@@ -584,7 +584,7 @@ def run_scene(name: str, prof: dict, mode: str, cache: Path, out: Path, fresh: b
              "resolution": list(res), "extract_ms": extract_ms}
 
     # ---- LPV sweep
-    engine = _make_engine(core.raster.Rasterizer())
+    engine = _make_engine(core.render.raster.Rasterizer())
     settings_cls = type(core_scene.settings)
     defaults = settings_cls()
     base = base_settings(settings_cls, mode)
@@ -1000,10 +1000,10 @@ def plot_stability(figs: list[dict], out: Path) -> list[str]:
 
 
 def _tolerances() -> dict:
-    """The tolerances tests/test_stability.py asserts (lpv_core.stability.TOLERANCES)."""
+    """The tolerances tests/test_stability.py asserts (tools.stability.TOLERANCES)."""
     import importlib
 
-    from ._core import core
+    import lpv_core as core
 
     return importlib.import_module(f"{core.__name__}.stability").TOLERANCES
 
@@ -1084,7 +1084,7 @@ def write_readme(data: dict, out: Path) -> Path:
         f"code {meta['commit']}. Profile **{meta['profile']}**: "
         f"{meta['resolution'][0]}x{meta['resolution'][1]} pixels, LPV times are medians of "
         f"{meta['repeats']} runs, report run time {meta['seconds'] / 60:.1f} min. "
-        "Regenerate with `python -m lpv_addon.report --out docs/report` (references and "
+        "Regenerate with `python -m tools.report --out docs/report` (references and "
         "Cycles sweeps are cached in `.cache/report`; `--fresh-cycles` re-times Cycles; "
         "`--readme-only` rewrites this file from results.json)."),
         "",
@@ -1472,7 +1472,7 @@ def _parse_resolution(text):
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m lpv_addon.report",
+    p = argparse.ArgumentParser(prog="python -m tools.report",
                                 description=__doc__.split("\n")[0])
     p.add_argument("--quick", action="store_true",
                    help="one small scene, a few settings, low resolution (minutes)")
@@ -1500,7 +1500,7 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()
     _import_bpy()  # before the GL context: bpy first, as the batch CLI does
-    from . import scenes as scene_builders
+    from tools import scenes as scene_builders
 
     unknown = [s for s in scenes if s not in scene_builders.SCENES
                and s not in scene_builders.BUILDERS]
@@ -1511,7 +1511,7 @@ def main(argv: list[str] | None = None) -> int:
     res = args.resolution or prof["resolution"]
     import importlib
 
-    from ._core import core
+    import lpv_core as core
 
     # Imported now: a long run keeps the code it started with.
     stability = importlib.import_module(f"{core.__name__}.stability")
@@ -1547,7 +1547,7 @@ def main(argv: list[str] | None = None) -> int:
     (out / "results.partial.json").unlink(missing_ok=True)
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     data["meta"] = {
-        "command": "python -m lpv_addon.report" + ("" if mode == "full" else
+        "command": "python -m tools.report" + ("" if mode == "full" else
                                                    (" --quick" if mode == "quick"
                                                     else f" --profile {mode}")),
         "profile": mode, "date": datetime.datetime.now().strftime("%Y-%m-%d %H:%M"),

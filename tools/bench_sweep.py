@@ -1,6 +1,6 @@
 """Scaling sweep of the LPV engine: per-stage medians, cost-growth exponents and a roofline.
 
-Used by ``python -m lpv_core.bench --sweep`` (full, a few minutes) and ``--sweep-quick`` (tiny,
+Used by ``python -m tools.bench --sweep`` (full, a few minutes) and ``--sweep-quick`` (tiny,
 for tests). Everything here is a pure function returning plain dicts (JSON-ready); nothing is
 printed except by :func:`table`.
 
@@ -44,9 +44,11 @@ import traceback
 
 import numpy as np
 
-from . import deferred, demo, engine, ordinates, propagation, sh
-from .grid import Grid
-from .scene import GISettings, make_scene
+from lpv_core import engine, propagation, sh
+from lpv_core.grid import Grid
+from lpv_core.propagation import ordinates
+from lpv_core.render import deferred
+from lpv_core.scene import GISettings, demo, make_scene
 
 BACKENDS = ("numpy", "gl")
 # Transport models swept, the default first ("dom"); m1 and sh for comparison.
@@ -368,7 +370,7 @@ def _dense_grid(r: int, rng) -> tuple[np.ndarray, np.ndarray]:
 def _gl_backend():
     """(GLBackend, None) or (None, reason it cannot be made)."""
     try:
-        from .gl_backend import GLBackend
+        from lpv_core.gl.backend import GLBackend
 
         return GLBackend(), None
     except Exception as exc:  # noqa: BLE001 - recorded: no GL context

@@ -23,7 +23,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import closure, jit, octants, ordinates, sh
+from .. import sh
+from ..runtime import jit
+from . import closure, octants, ordinates
 from . import sweep as transport_sweep
 
 FRONT_SOLID_ANGLE = 4.0 * np.arctan(np.sqrt(11.0) / 33.0)  # 0.4006696846

@@ -1,6 +1,6 @@
 """Extraction benchmark: median ms per phase for a ~1M-triangle mesh and many instances.
 
-Usage: python -m lpv_addon.extract_bench [--triangles 1000000] [--repeat 5] [--instances 100]
+Usage: python -m tools.extract_bench [--triangles 1000000] [--repeat 5] [--instances 100]
 Runs headless with the bpy module; prints JSON.
 """
 
@@ -117,7 +117,7 @@ def main(argv: list[str] | None = None) -> dict:
     os.environ.setdefault("BLENDER_USER_RESOURCES", tempfile.mkdtemp(prefix="lpv_bench_"))
     import bpy
 
-    from . import extract
+    from lpv_addon import extract
 
     t0 = time.perf_counter()
     big, insts = build_scene(bpy, args.triangles, args.instances, args.instance_triangles,

@@ -1,6 +1,6 @@
 """Benchmark of the numpy and moderngl (compute shader) backends, stage by stage.
 
-    python -m lpv_core.bench_backends [--sizes 16,32,64] [--repeat 5] [--json]
+    python -m tools.bench_backends [--sizes 16,32,64] [--repeat 5] [--json]
 
 Per grid size: median ms of injection (VPLs from a 256^2 RSM by default), propagation
 (resolution / 4 steps, no early stop, for each angular model, including the readback of the accumulated grid that the
@@ -20,8 +20,9 @@ import time
 
 import numpy as np
 
-from . import gl_backend, injection, lookup, propagation
-from .grid import Grid
+from lpv_core import injection, lookup, propagation
+from lpv_core.gl import backend as gl_backend
+from lpv_core.grid import Grid
 
 
 def _median_ms(fn, repeat: int, budget_s: float) -> float:
@@ -124,7 +125,7 @@ def table(out: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m lpv_core.bench_backends",
+    p = argparse.ArgumentParser(prog="python -m tools.bench_backends",
                                 description=__doc__.split("\n")[0])
     p.add_argument("--sizes", default="16,32,64")
     p.add_argument("--repeat", type=int, default=5)

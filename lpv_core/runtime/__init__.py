@@ -1,0 +1,1 @@
+"""Process settings for the compute: compiled kernels (numba), heap and BLAS threads."""

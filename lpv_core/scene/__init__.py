@@ -1,0 +1,23 @@
+"""The scene model the core computes on: triangles, materials, lights, camera, areas and the GI
+settings, in Blender units (model.py); light views and intensities (lights.py); the built-in
+demo scenes (demo.py)."""
+
+from .model import (
+    AREA_TYPES,
+    LIGHT_TYPES,
+    Area,
+    Camera,
+    GISettings,
+    Light,
+    Material,
+    Scene,
+    cross3,
+    look_at_matrix,
+    make_scene,
+    orthographic_matrix,
+    perspective_matrix,
+)
+
+__all__ = ["AREA_TYPES", "LIGHT_TYPES", "Area", "Camera", "GISettings", "Light", "Material",
+           "Scene", "cross3", "look_at_matrix", "make_scene", "orthographic_matrix",
+           "perspective_matrix"]
