@@ -7,16 +7,14 @@
 Per frame it writes DIR/NNNN.exr (Combined, Diffuse Direct, Diffuse Indirect, Diffuse Color)
 and rewrites DIR/stats.json; both appear atomically, so a cancelled batch keeps finished frames.
 Progress goes to stderr. Exit 0 on success, 2 with a one-line reason on bad arguments or input.
-The engine runs in this process: no Blender drawing happens here (see design.md).
+The frames go through the Render Batch operator's loop (render/frames.py) with the engine in
+this process: no Blender drawing happens here (see design.md).
 """
 
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import sys
-import time
 from pathlib import Path
 
 USAGE_ERROR = 2
@@ -86,17 +84,6 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def _progress(quiet: bool, msg: str) -> None:
-    if not quiet:
-        print(msg, file=sys.stderr, flush=True)
-
-
-def _write_json_atomic(path: Path, data: dict) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(data, indent=1))
-    os.replace(tmp, path)
-
-
 def _ensure_properties() -> None:
     """Register Scene/Light/Object/Material.lpv when the add-on is not enabled (the CLI), so
     the .blend's GI settings, flags and their animation (keyframed intensity) are read."""
@@ -116,9 +103,9 @@ def open_scene(args) -> object:
     if args.demo:
         if args.blend:
             raise BatchError("give either a .blend file or --demo, not both")
-        from tools import scenes
+        from .scene_io import demo
 
-        scenes.cornell_box("SPOT", resolution=(256, 256))
+        demo.cornell_box("SPOT", resolution=(256, 256))
         scene = bpy.context.scene
         scene.frame_start = scene.frame_end = 1  # a still: one frame unless --frames says more
         return scene
@@ -164,64 +151,22 @@ def run(argv: list[str] | None = None) -> int:
     return render_frames(scene, out, frames, resolution, overrides, args.quiet)
 
 
-def _warn_unmodelled(dropped: dict) -> None:
-    """One stderr line per light source LPV GI does not model (also in stats.json)."""
-    if dropped.get("world_lighting_ignored"):
-        print("warning: the world (background) lights this scene; LPV GI models lamps only, "
-              "so world light is missing from Diffuse Direct and Indirect", file=sys.stderr)
-    n = dropped.get("emissive_materials_ignored", 0)
-    if n:
-        print(f"warning: {n} emissive material(s) ignored; LPV GI models lamps only",
-              file=sys.stderr)
-
-
 def render_frames(scene, out: Path, frames, resolution, overrides: dict, quiet: bool) -> int:
-    """Render every frame of the range; keeps finished frames if interrupted."""
-    import bpy
+    """Render every frame of the range (default: the scene's) in this process; keeps finished
+    frames if interrupted. Returns the exit code (2 with a one-line reason when a frame cannot
+    be extracted or the engine refuses its settings)."""
+    from .render.frames import BatchJob
 
-    from ._core import core
-    from .extract import extract_scene
+    def log(msg: str) -> None:
+        if not quiet or msg.startswith("warning:"):
+            print(msg, file=sys.stderr, flush=True)
 
-    first, last = frames or (scene.frame_start, scene.frame_end)
-    engine = core.engine.Engine()
-    record = {"scene": scene.name, "settings": None, "frames": []}
-    original_frame = scene.frame_current
+    job = BatchJob(scene, out, frames, resolution, overrides, in_process=True, log=log)
     try:
-        for i, frame in enumerate(range(first, last + 1)):
-            t0 = time.perf_counter()
-            scene.frame_set(frame)
-            stats = core.engine.Stats()
-            timings: dict = {}
-            depsgraph = bpy.context.evaluated_depsgraph_get()
-            t_ex = time.perf_counter()
-            try:
-                lpv_scene = extract_scene(depsgraph, scene, resolution, overrides, timings=timings)
-            except ValueError as exc:
-                print(f"error: frame {frame}: {exc}", file=sys.stderr)
-                return USAGE_ERROR
-            stats.add_ms("extract", time.perf_counter() - t_ex)
-            if record["settings"] is None:
-                record["settings"] = lpv_scene.settings.as_dict()
-                _warn_unmodelled(lpv_scene.dropped)
-            try:
-                result = engine.update(lpv_scene, stats)
-            except ValueError as exc:  # settings the engine cannot run (e.g. out of memory)
-                print(f"error: frame {frame}: {exc}", file=sys.stderr)
-                return USAGE_ERROR
-            passes = core.render.deferred.render(engine, lpv_scene, result, stats)
-            t_w = time.perf_counter()
-            core.render.exr.write_multilayer(out / f"{frame:04d}.exr", passes)
-            stats.add_ms("write", time.perf_counter() - t_w)
-            stats.ms["total"] = (time.perf_counter() - t0) * 1000.0
-            entry = {"frame": frame, **stats.as_dict(), "intensity": lpv_scene.settings.intensity}
-            entry["extract_ms"] = timings
-            record["frames"].append(entry)
-            _write_json_atomic(out / "stats.json", record)
-            _progress(quiet, f"frame {frame} ({i + 1}/{last - first + 1}): "
-                             f"{stats.ms['total']:.0f} ms, LPV {stats.ms.get('lpv_update', 0):.0f} ms"
-                             f" -> {out / f'{frame:04d}.exr'}")
-    finally:
-        scene.frame_set(original_frame)
+        job.run()
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return USAGE_ERROR
     return 0
 
 

@@ -1,8 +1,8 @@
 """Operators under ``bpy.ops.lpv``: update, add_area, render_batch, compare_cycles.
 
 Every operator has a poll (with a message saying what is missing) and reports failures in one
-clear line. The engine always runs in the worker process (see live.py): Blender's own process
-never creates a moderngl context.
+clear line. The engine always runs in the worker process (worker_client.py): Blender's own
+process never creates a moderngl context.
 """
 
 from __future__ import annotations
@@ -16,9 +16,12 @@ import bpy
 import numpy as np
 from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, StringProperty
 
-from . import live
 from ._core import core
 from .properties import PATH_OPTIONS
+from .render import compare
+from .render.frames import BatchJob
+from .viewport import live
+from .worker_client import WorkerError
 
 
 def _scene_poll(cls, context, need_camera: bool = False) -> bool:
@@ -51,7 +54,7 @@ class LPV_OT_update(bpy.types.Operator):
         live.mark_dirty("update operator")
         try:
             live.refresh(scene, context.evaluated_depsgraph_get(), wait=True)
-        except (live.WorkerError, ValueError, OSError) as exc:
+        except (WorkerError, ValueError, OSError) as exc:
             self.report({"ERROR"}, f"LPV update failed: {exc}")
             return {"CANCELLED"}
         if live.STATE.error:
@@ -154,7 +157,7 @@ class LPV_OT_render_batch(bpy.types.Operator):
             raise ValueError("no output folder (set Scene > LPV > Output)")
         if out.startswith("//") and not bpy.data.filepath:
             out = os.path.join(tempfile.gettempdir(), "lpv_frames", out[2:])
-        return live.BatchJob(scene, out, _frame_range(self, scene))
+        return BatchJob(scene, out, _frame_range(self, scene))
 
     def execute(self, context):
         try:
@@ -165,7 +168,7 @@ class LPV_OT_render_batch(bpy.types.Operator):
         live.STATE.paused = True
         try:
             job.run()
-        except (ValueError, live.WorkerError, OSError) as exc:
+        except (ValueError, WorkerError, OSError) as exc:
             self.report({"ERROR"}, f"Render Batch failed after {len(job.done)} frame(s): {exc}")
             return {"CANCELLED"}
         finally:
@@ -177,7 +180,7 @@ class LPV_OT_render_batch(bpy.types.Operator):
         try:
             self._job = self._make_job(context)
             self._job.start()
-        except (ValueError, live.WorkerError, OSError) as exc:
+        except (ValueError, WorkerError, OSError) as exc:
             self.report({"ERROR"}, f"Render Batch: {exc}")
             return {"CANCELLED"}
         wm = context.window_manager
@@ -211,7 +214,7 @@ class LPV_OT_render_batch(bpy.types.Operator):
             return {"PASS_THROUGH"}
         try:
             running = job.step()
-        except (ValueError, live.WorkerError, OSError) as exc:
+        except (ValueError, WorkerError, OSError) as exc:
             job.error = str(exc)
             running = False
         context.window_manager.progress_update(len(job.done))
@@ -231,29 +234,6 @@ class LPV_OT_render_batch(bpy.types.Operator):
 IMAGE_ERROR = "LPV vs Cycles"
 IMAGE_OURS = "LPV Indirect"
 IMAGE_CYCLES = "Cycles Indirect"
-
-
-def indirect_contribution(passes: dict) -> np.ndarray:
-    """Diffuse Indirect x Diffuse Color: the indirect diffuse light a pixel shows."""
-    return passes["Diffuse Indirect"][..., :3] * passes["Diffuse Color"][..., :3]
-
-
-def error_heatmap(ours: np.ndarray, ref: np.ndarray) -> tuple[np.ndarray, dict]:
-    """(H, W, 4) red/green heatmap and metrics. Red: LPV brighter than Cycles, green: darker;
-    full colour at an error of the reference's mean indirect luminance."""
-    lum_a = ours.mean(axis=-1)
-    lum_b = ref.mean(axis=-1)
-    mean_b = float(lum_b.mean())
-    norm = mean_b if mean_b > 0 else 1.0
-    err = (lum_a - lum_b) / norm
-    heat = np.zeros(ours.shape[:2] + (4,), np.float32)
-    heat[..., 0] = np.clip(err, 0.0, 1.0)
-    heat[..., 1] = np.clip(-err, 0.0, 1.0)
-    heat[..., 3] = 1.0
-    rmse = float(np.sqrt(((ours - ref) ** 2).mean()) / (ref.mean() or 1.0))
-    ratio = float(ours.mean() / ref.mean()) if ref.mean() > 0 else float("nan")
-    return heat, {"relative_rmse": rmse, "mean_ratio": ratio,
-                  "too_bright": float((err > 0.1).mean()), "too_dark": float((err < -0.1).mean())}
 
 
 def store_image(name: str, rgba: np.ndarray) -> bpy.types.Image:
@@ -305,8 +285,8 @@ class LPV_OT_compare_cycles(bpy.types.Operator):
         return True
 
     def execute(self, context):
-        from . import reference
-        from .extract import render_resolution
+        from .render import cycles
+        from .scene_io.extract import render_resolution
 
         scene = context.scene
         props = scene.lpv
@@ -316,18 +296,18 @@ class LPV_OT_compare_cycles(bpy.types.Operator):
         samples = self.samples or props.compare_samples
         try:
             t0 = time.perf_counter()
-            ours, _ = live.render_passes(scene, (w, h))
+            ours, _ = compare.render_passes(scene, (w, h))
             t_ours = time.perf_counter() - t0
             with tempfile.TemporaryDirectory(prefix="lpv_compare_") as tmp:
-                info = reference.render_cycles_passes(Path(tmp) / "ref.exr", samples=samples,
+                info = cycles.render_cycles_passes(Path(tmp) / "ref.exr", samples=samples,
                                                       diffuse_bounces=1, resolution=(w, h),
                                                       scene=scene)
                 ref = core.render.exr.read_multilayer(Path(tmp) / "ref.exr")
-        except (live.WorkerError, ValueError, OSError, RuntimeError, KeyError) as exc:
+        except (WorkerError, ValueError, OSError, RuntimeError, KeyError) as exc:
             self.report({"ERROR"}, f"Compare with Cycles failed: {exc}")
             return {"CANCELLED"}
-        a, b = indirect_contribution(ours), indirect_contribution(ref)
-        heat, metrics = error_heatmap(a, b)
+        a, b = compare.error.indirect_term(ours), compare.error.indirect_term(ref)
+        heat, metrics = compare.error_heatmap(a, b)
         img = store_image(IMAGE_ERROR, heat)
         for name, arr in ((IMAGE_OURS, a), (IMAGE_CYCLES, b)):
             rgba = np.ones(arr.shape[:2] + (4,), np.float32)

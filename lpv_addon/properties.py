@@ -18,6 +18,7 @@ from bpy.props import (
 )
 
 from ._core import core
+from .viewport import live
 
 # Quality presets: name -> (label, description, settings).
 PRESETS = {
@@ -56,8 +57,6 @@ AREA_TYPES = [
 
 def _changed(self, context) -> None:
     """Any LPV property changed through the UI or Python: refresh the live viewport."""
-    from . import live
-
     live.mark_dirty(f"{type(self).__name__}")
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import bpy
 
-from . import live
+from .viewport import live
 
 
 def _props(context):

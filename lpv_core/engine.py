@@ -15,7 +15,7 @@ import numpy as np
 
 from . import areas, cascades, geometry_volume, injection, lookup, planner, propagation
 from .grid import Grid
-from .propagation import ordinates, sweep
+from .propagation import sweep
 from .runtime import blas, heap, jit
 from .scene.model import Scene
 
@@ -55,6 +55,44 @@ class Timer:
 
 
 @dataclass
+class LightGrids:
+    """A light's propagated grids, valid while the scene key holds (Engine._light)."""
+
+    key: tuple  # light_key of the light they were made for
+    grids: list  # propagated grid per cascade, finest first (unweighted)
+    sample: tuple  # (positions (N, 3), flux (N, 3)): a VPL subsample for debug views
+    flux: np.ndarray | None  # the RSM's VPL flux (same_vpls after a material change)
+
+
+@dataclass
+class Volume:
+    """A cascade's propagation visibility and its occluders' cell gaps (Engine.occlusion)."""
+
+    visibility: np.ndarray | None  # (6, R, R, R) or None when nothing blocks
+    gaps: np.ndarray | None  # geometry_volume.cell_gaps, or None
+
+
+@dataclass
+class Bounds:
+    """The LPV box of one geometry (cascades.fit_bounds)."""
+
+    geometry: str  # geometry_key it was fitted to
+    lo: np.ndarray
+    hi: np.ndarray
+    outside: int  # triangles left out as far outliers
+    outside_share: float  # their share of the surface area
+
+
+@dataclass
+class Focus:
+    """What the camera sees (Engine._focus): the cascades are placed and counted from it."""
+
+    key: tuple  # geometry key, camera view and projection
+    points: np.ndarray  # world positions of the covered pixels
+    sky_share: float  # share of the pixels that see no geometry
+
+
+@dataclass
 class LPVResult:
     """The combined LPV (SH intensity per cell) and the grid it lives on."""
 
@@ -84,10 +122,11 @@ class Engine:
         self._gl = None  # GLBackend on the rasteriser's context, made on first use
         # Incremental updates: propagated grids per light, valid while the scene key holds.
         self._cache_key = None
-        self._cache: dict = {}
+        self._lights: dict[str, LightGrids] = {}
+        self._volumes: dict[tuple, Volume] = {}  # by cascade placement (origin, cell size)
         self._plans: dict = {}  # the planner's cascade decisions for the last chain
-        self._bounds = None  # (geometry key, lo, hi, outside count, outside area share)
-        self._focus_cache = None  # (geometry + camera key, visible points, sky share)
+        self._bounds: Bounds | None = None
+        self._focus_cache: Focus | None = None
         self._cascade_count = None  # planner.cascade_count of the last update (hysteresis)
         self._count_memo = None  # (inputs, result) of the last cascade_count
         self._last_chain = None  # the cascades of the last update (placement hysteresis)
@@ -104,10 +143,12 @@ class Engine:
         return self._raster
 
     def backend(self, settings, stats: Stats | None = None):
-        """The compute backend for ``settings.backend``: "numpy", "gl" (moderngl compute
-        shaders, gl_backend.py) or "auto" (per stage, the faster of the two on this machine,
-        measured on a small grid once per machine and kept on disk, gl_backend.auto_backend).
-        Each has inject, propagate, irradiance and discard (frees what inject returned).
+        """The compute backend for ``settings.backend``: "numpy" (the CPU code), "gl" (moderngl
+        compute shaders for the dom propagation and lookup, gl/backend.py; the rest on the CPU)
+        or "auto" (gl.backend.auto_backend: the CPU on a software renderer such as llvmpipe,
+        without timing anything; on a GPU per stage the faster of the two, measured once per
+        machine and kept on disk). stats.info["backend_auto"] says what auto chose and why.
+        Each has inject, propagate, irradiance and discard.
         The CPU stages run numba-compiled kernels where numba is installed (jit.py): the
         stats' "cpu_kernels" says which."""
         name = getattr(settings, "backend", "numpy")
@@ -122,11 +163,11 @@ class Engine:
                 gl = None
             t0 = time.perf_counter()
             be, choice = gl_backend.auto_select(gl, NUMPY_BACKEND,
-                                                getattr(settings, "angular", "sh"))
+                                                getattr(settings, "angular", "dom"))
             took = time.perf_counter() - t0
             if stats is not None:
-                # the first call per process and model measures (~1-2 s) unless the choice
-                # came from the disk cache (gl_backend.auto_backend; ~1 ms to read)
+                # on a GPU the first call per process and model measures (seconds) unless the
+                # choice came from the disk cache (~1 ms to read); a software renderer none
                 if took > 1e-3 and not choice.get("cached"):
                     stats.add_ms("backend_choice", took)
                 stats.info["backend_auto"] = dict(choice)
@@ -165,9 +206,10 @@ class Engine:
         """The box the LPV covers (cascades.fit_bounds: far outliers left out, listed in the
         stats), cached per geometry."""
         geo = geo or geometry_key(scene)
-        if self._bounds is None or self._bounds[0] != geo:
-            self._bounds = (geo, *cascades.fit_bounds(scene))
-        _, lo, hi, outside, share = self._bounds
+        if self._bounds is None or self._bounds.geometry != geo:
+            self._bounds = Bounds(geo, *cascades.fit_bounds(scene))
+        b = self._bounds
+        lo, hi, outside, share = b.lo, b.hi, b.outside, b.outside_share
         if stats is not None:
             stats.info["lpv_bounds"] = {"lo": lo.tolist(), "hi": hi.tolist(),
                                         "outside_triangles": outside,
@@ -184,7 +226,7 @@ class Engine:
         animation whose geometry and lights hold still (a camera move) reuse them."""
         from .render import direct
 
-        geo = self._bounds[0] if self._bounds is not None else geometry_key(scene)
+        geo = self._bounds.geometry if self._bounds is not None else geometry_key(scene)
         key = (geo, light_key(light), int(resolution),
                np.asarray(bounds, np.float64).tobytes())
         if self._shadows.get("geo") != geo:
@@ -219,8 +261,7 @@ class Engine:
             geo = geometry_key(scene)
         lo, hi, chain = self._chain(scene, stats, geo)
         if settings.angular == "dom":  # a clear error before the RSMs, not a MemoryError
-            check = sweep.check_memory if sweeps(settings) else ordinates.check_memory
-            check(settings.grid_resolution, len(chain) > 1)
+            sweep.check_memory(settings.grid_resolution, len(chain) > 1)
         grid = chain[-1]
         active = _active_lights(scene, stats)
         with Timer(stats, "change_tracking"):
@@ -238,7 +279,7 @@ class Engine:
                                     visibilities, stats, 0, [], t0,
                                     {g: self.gaps(g) for g in chain})
         if key != self._cache_key:
-            self._cache_key, self._cache = key, {}
+            self._cache_key, self._lights, self._volumes = key, {}, {}
             self._cache_base, self._cache_chain = base, chain
             self._refl_key = None
         with Timer(stats, "change_tracking"):
@@ -254,8 +295,7 @@ class Engine:
             return LPVResult(grid, None, {}, stats)
         self.upload(scene, stats, geo)
         backend = self.backend(settings, stats)
-        iterations = settings.iterations or auto_iterations(settings.grid_resolution,
-                                                            settings.angular)
+        iterations = propagation_steps(settings)
         visibilities = [self._visibility(scene, g, stats) for g in chain]
         run = _ChainRun(chain, visibilities, iterations, settings, backend, stats)
         per_light, vpl_sample = {}, {}
@@ -278,7 +318,7 @@ class Engine:
         if settings.cascades > 1 and scene.camera is not None:
             focus, sky = self._focus(scene, stats, geo)
             if settings.cascades_auto:
-                memo = (self._focus_cache[0], settings.cascades, lo.tobytes(), hi.tobytes(),
+                memo = (self._focus_cache.key, settings.cascades, lo.tobytes(), hi.tobytes(),
                         self._cascade_count)
                 if self._count_memo is None or self._count_memo[0] != memo:
                     eye = np.linalg.inv(np.asarray(scene.camera.view, np.float64))[:3, 3]
@@ -319,7 +359,7 @@ class Engine:
         if not reach[-1].keep:  # reaches no caster at all: no RSM either
             totals = [g.zeros(propagation.coefficients(scene.settings.angular)) for g in chain]
             sample = (np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32))
-            self._cache[light.name] = (light_key(light), totals, sample, None)
+            self._lights[light.name] = LightGrids(light_key(light), totals, sample, None)
             return totals, sample, 0
         planner.record(reach[:-1], stats, "injection")
         if light.type == "SUN" and len(chain) > 1:
@@ -327,15 +367,15 @@ class Engine:
                                         scene.settings, stats)
         else:
             rsm, sample = self._rsm(light, bounds, scene.settings, stats)
-        entry = self._cache.get(light.name)
-        if cached is not None and entry is not None and same_vpls(entry[3], rsm.flux):
+        entry = self._lights.get(light.name)
+        if cached is not None and entry is not None and same_vpls(entry.flux, rsm.flux):
             stats.skip("injection", f"light '{light.name}'",
                        "materials changed, but none its RSM sees: grids reused")
             return cached[0], cached[1], 0
         totals = run.propagate(rsm.position, rsm.normal, rsm.flux, [d.keep for d in reach])
         if scene.settings.bounces > 1:
             totals = self._more_bounces(scene, run, totals)
-        self._cache[light.name] = (light_key(light), totals, sample, rsm.flux)
+        self._lights[light.name] = LightGrids(light_key(light), totals, sample, rsm.flux)
         return totals, sample, rsm.count
 
     @staticmethod
@@ -367,17 +407,17 @@ class Engine:
                     or np.max(np.abs(k - np.round(k))) > 1e-6):
                 return None
             offsets.append(np.round(k).astype(int))
-        entries = [self._cache.get(light.name) for light in active]
-        if any(e is None or e[0] != light_key(li) for e, li in zip(entries, active)):
+        entries = [self._lights.get(light.name) for light in active]
+        if any(e is None or e.key != light_key(li) for e, li in zip(entries, active)):
             return None  # a light changed too: recompute
         with Timer(stats, "reprojection"):
-            per_light = {li.name: [cascades.shift(v, off) for v, off in zip(e[1], offsets)]
+            per_light = {li.name: [cascades.shift(v, off) for v, off in zip(e.grids, offsets)]
                          for e, li in zip(entries, active)}
         moved = [int(np.abs(o).max()) for o in offsets[:-1]]
         stats.skip("propagation", "all lights",
                    f"camera moved: cascade content shifted by {moved} cells, no RSM or "
                    "propagation; a refresh follows")
-        return per_light, {li.name: e[2] for e, li in zip(entries, active)}
+        return per_light, {li.name: e.sample for e, li in zip(entries, active)}
 
     def _steady(self, chain: list) -> list:
         """The chain with each finer cascade left where it was last update if it would move by
@@ -407,7 +447,7 @@ class Engine:
         camera."""
         key = (geo, np.asarray(scene.camera.view, np.float64).tobytes(),
                np.asarray(scene.camera.projection, np.float64).tobytes())
-        if self._focus_cache is None or self._focus_cache[0] != key:
+        if self._focus_cache is None or self._focus_cache.key != key:
             self.upload(scene, stats, geo)
             with Timer(stats, "planner"):
                 w, h = scene.camera.resolution
@@ -416,8 +456,8 @@ class Engine:
                                            max(1, round(w * scale)), max(1, round(h * scale)))
                 points = frame.position[frame.covered].astype(np.float64)
                 sky = 1.0 - float(np.mean(frame.covered)) if frame.covered.size else 1.0
-            self._focus_cache = (key, points, sky)
-        return self._focus_cache[1], self._focus_cache[2]
+            self._focus_cache = Focus(key, points, sky)
+        return self._focus_cache.points, self._focus_cache.sky_share
 
     def _plan_cascades(self, scene: Scene, chain: list, stats: Stats, geo: str) -> list:
         """The chain without the cascades the planner finds no work for (cached per chain)."""
@@ -465,34 +505,34 @@ class Engine:
 
     def clear_cache(self) -> None:
         """Forget cached grids and shadow maps: the next update recomputes everything."""
-        self._cache_key, self._cache = None, {}
+        self._cache_key, self._lights, self._volumes = None, {}, {}
         self._shadows = {}
         self._cache_base = self._cache_chain = None
 
     def _visibility(self, scene: Scene, grid: Grid, stats: Stats | None):
         """occlusion()'s visibility, cached with the per-light grids (same scene key)."""
-        key = ("visibility", grid.origin, grid.cell_size)
-        if key not in self._cache:
-            self._cache[key] = occlusion(scene, grid, stats)
+        key = (grid.origin, grid.cell_size)
+        if key not in self._volumes:
+            self._volumes[key] = Volume(*occlusion(scene, grid, stats))
         elif stats is not None:
             stats.skip("geometry_volume", f"grid {grid.cell_size:.4g} m", "unchanged: reused")
-        return self._cache[key][0]
+        return self._volumes[key].visibility
 
     def gaps(self, grid: Grid):
         """geometry_volume.cell_gaps of ``grid``'s occluders from the last update, or None."""
-        entry = self._cache.get(("visibility", grid.origin, grid.cell_size))
-        return None if entry is None else entry[1]
+        entry = self._volumes.get((grid.origin, grid.cell_size))
+        return None if entry is None else entry.gaps
 
     def _cached(self, light, stats: Stats, report: bool = True):
         """(grids per cascade, VPL sample) of ``light`` if nothing it depends on changed
         (materials aside: see update)."""
-        entry = self._cache.get(light.name)
-        if entry is None or entry[0] != light_key(light):
+        entry = self._lights.get(light.name)
+        if entry is None or entry.key != light_key(light):
             return None
         if report:
             stats.skip("rsm", f"light '{light.name}'",
                        "unchanged since the last update: its propagated grids are reused")
-        return entry[1], entry[2]
+        return entry.grids, entry.sample
 
     def _more_bounces(self, scene: Scene, run: _ChainRun, first: list) -> list:
         """Add bounces 2..N [KD10 sec. 6]: every caster surfel reflects the light of the
@@ -542,7 +582,6 @@ class _ChainRun:
         self.iterations_cap, self.settings = iterations, settings
         self.backend, self.stats = backend, stats
         self.iterations: list = []  # steps run per propagation ("sweep": solved exactly)
-        self.sweep = sweeps(settings)
 
     def propagate(self, positions, normals, flux, reach: list | None = None) -> list:
         """Propagated grids (one per cascade) of the VPLs (N, 3) x3; ``reach[c]`` False: the
@@ -552,45 +591,40 @@ class _ChainRun:
         n = positions.shape[0]
         level = cascades.assign(chain, positions) if last else np.zeros(n, np.int64)
         totals = [None] * len(chain)  # zeros only where nothing lands (filled at the end)
-        for group in direction_groups(normals, settings.direction_groups):
-            idx = np.arange(n)[group]
-            carry = None
-            for c, g in enumerate(chain):
-                sel = idx[level[idx] == c]
-                if carry is None and (sel.size == 0 or (reach is not None and not reach[c])):
-                    continue  # nothing lands in this cascade and nothing comes in from inside
-                if sel.size == n:  # all of them, in order (one cascade, one group): no copies
-                    sel = slice(None)
-                with Timer(stats, "injection"):
-                    injected = _inject(be, g, positions, normals, flux, self.visibilities[c],
-                                       sel)
-                    passing = None
-                    if carry is not None:  # light leaving the finer cascade: no surface's
-                        passing = g.zeros()
-                        cascades.hand_on(chain[c - 1], carry, g, passing)
-                with Timer(stats, "propagation"):
-                    kw = {"sweep": True} if self.sweep else {}
-                    if settings.angular == "dom":
-                        kw["launch"] = True  # VPLs start from their surfaces (ordinates.launch)
-                    if passing is not None:
-                        kw["passing"] = passing
-                    prop = be.propagate(injected, self.iterations_cap,
-                                        reprojection=settings.reprojection,
-                                        angular=settings.angular,
-                                        visibility=self.visibilities[c],
-                                        occlude_first_step=True,
-                                        capture_outflow=c < last, **kw)
-                    be.discard(injected)
-                self.iterations.append("sweep" if getattr(prop, "swept", False)
-                                       else prop.iterations)
-                with Timer(stats, "combine"):
-                    if totals[c] is None:  # a copy where the backend may hold on to it
-                        totals[c] = (np.asarray(prop.values, np.float32)
-                                     if getattr(be, "fresh_results", False)
-                                     else np.array(prop.values, np.float32))
-                    else:
-                        totals[c] += prop.values
-                carry = prop.outflow
+        idx = np.arange(n)
+        carry = None
+        for c, g in enumerate(chain):
+            sel = idx[level[idx] == c]
+            if carry is None and (sel.size == 0 or (reach is not None and not reach[c])):
+                continue  # nothing lands in this cascade and nothing comes in from inside
+            if sel.size == n:  # all of them, in order (one cascade): no copies
+                sel = slice(None)
+            with Timer(stats, "injection"):
+                injected = _inject(be, g, positions, normals, flux, self.visibilities[c],
+                                   sel)
+                passing = None
+                if carry is not None:  # light leaving the finer cascade: no surface's
+                    passing = g.zeros()
+                    cascades.hand_on(chain[c - 1], carry, g, passing)
+            with Timer(stats, "propagation"):
+                kw = {}
+                if settings.angular == "dom":
+                    kw["launch"] = True  # VPLs start from their surfaces (ordinates.launch)
+                if passing is not None:
+                    kw["passing"] = passing
+                prop = be.propagate(injected, self.iterations_cap,
+                                    angular=settings.angular,
+                                    visibility=self.visibilities[c],
+                                    occlude_first_step=True,
+                                    capture_outflow=c < last, **kw)
+                be.discard(injected)
+            self.iterations.append("sweep" if getattr(prop, "swept", False)
+                                   else prop.iterations)
+            with Timer(stats, "combine"):  # a copy where the backend may hold on to it
+                totals[c] = (np.asarray(prop.values, np.float32)
+                             if getattr(be, "fresh_results", False)
+                             else np.array(prop.values, np.float32))
+            carry = prop.outflow
         coefficients = propagation.coefficients(settings.angular)
         return [g.zeros(coefficients) if t is None else t for g, t in zip(chain, totals)]
 
@@ -676,22 +710,6 @@ def _inject(backend, grid: Grid, positions, normals, flux, visibility, sel=slice
                           **kw)
 
 
-def direction_groups(normals: np.ndarray, groups: int) -> list:
-    """Index arrays splitting VPLs by the axis their normal faces most (groups = 6), or one.
-
-    With the maximum-entropy reading (angular="m1") a cell holds one lobe per colour, so light
-    from differently facing surfaces that meets in a cell merges into one broad lobe (the M1
-    closure's crossing-beams error). Propagating each facing separately keeps the lobes apart;
-    propagation is linear in the injected light otherwise, so the sum is the answer.
-    """
-    if groups <= 1 or normals.shape[0] == 0:
-        return [slice(None)]
-    if groups != 6:
-        raise ValueError(f"direction_groups must be 1 or 6, not {groups}")
-    axis = np.argmax(normals @ propagation.AXES.T, axis=1)
-    return [np.nonzero(axis == i)[0] for i in range(6) if np.any(axis == i)]
-
-
 FOCUS_PIXELS = 64  # longest side of the G-buffer that finds what the camera sees
 VPL_SAMPLE = 4096  # VPLs per light kept in LPVResult.vpls for debug views
 
@@ -738,7 +756,7 @@ def combine(grid: Grid, per_light: dict, lights, intensity: float) -> np.ndarray
     held = [light for light in lights if per_light.get(light.name) is not None]
     if not held:
         return grid.zeros(k)
-    combined = np.empty(grid.shape[:4] + (k,), np.float32)
+    combined = np.empty(grid.shape(k), np.float32)
     flat = combined.reshape(-1, 3 * k)  # colour weights broadcast along the last axis (fast)
     scratch = None
     for n, light in enumerate(held):
@@ -781,22 +799,25 @@ def occlusion(scene: Scene, grid: Grid, stats: Stats | None = None):
     return visibility, gaps
 
 
-def sweeps(settings) -> bool:
-    """Automatic iterations with discrete ordinates: the transport sweep (sweep.py) gives the
-    limit of infinitely many steps, for the work of about three."""
-    return settings.angular == "dom" and settings.iterations == 0
+def propagation_steps(settings) -> int:
+    """The step cap a propagation gets: ``settings.iterations`` for "sh" (0: automatic);
+    "dom" always solves the limit of infinitely many steps (sweep.py) and ignores the
+    setting, its cap (auto_iterations) only bounds a stepping backend's early stop (GL)."""
+    if settings.angular == "dom" or not settings.iterations:
+        return auto_iterations(settings.grid_resolution, settings.angular)
+    return settings.iterations
 
 
-def auto_iterations(resolution: int, angular: str = "sh") -> int:
+def auto_iterations(resolution: int, angular: str = "dom") -> int:
     """Default cap on propagation steps.
 
     "sh": KD10 runs 8 steps on a 32^3 cascade (resolution / 4): its diffusive transport keeps
-    counting the same light near its source, so more steps only add error. "m1": light moves
-    up to one cell per step and leaves the grid or is absorbed by occluders, so iterate until
-    a step carries < 1e-3 of the injected flux, capped at 3 grid widths (a light path that
-    crosses the grid diagonally and back).
+    counting the same light near its source, so more steps only add error. "dom": light moves
+    up to one cell per step and leaves the grid or is absorbed by occluders, so a stepping
+    backend iterates until a step carries < 1e-3 of the injected flux, capped at 3 grid widths
+    (a light path that crosses the grid diagonally and back).
     """
-    if angular in ("m1", "dom"):
+    if angular == "dom":
         return 3 * resolution
     return max(1, round(resolution / 4))
 

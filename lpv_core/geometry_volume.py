@@ -17,8 +17,8 @@ out of a closed crate at its edges). The transmittance 1 - B per face becomes th
 ``visibility`` (6, R, R, R).
 
 Where numba is installed (jit.py), _subdivide, face_coverage, face_offsets and occluder_volume
-run compiled kernels that give the same bits as the numpy code (occluder_volume on the Cornell
-box, on 2 shared cores: about 40 -> 1.2 ms at R = 16, 150 -> 2 ms per cascade at R = 32).
+run compiled kernels that give the same bits as the numpy code (docs/benchmarks.md has their
+times).
 """
 
 from __future__ import annotations
@@ -31,6 +31,7 @@ import numpy as np
 
 from .grid import Grid
 from .runtime import jit
+from .runtime.pool import executor, workers
 
 # Sample points per face edge: 8, a quarter of a sub-triangle's length (SURFEL_SPACING), so that
 # even a sub-triangle's thin projection (a surface nearly edge-on to the plane) is sampled
@@ -95,7 +96,7 @@ def _splits_compiled(p: np.ndarray, spacing: float):
 def _subdivide_compiled(p: np.ndarray, normal: np.ndarray, area2: np.ndarray, k: np.ndarray):
     """_subdivide through _subdivide_kernel: the same sub-triangles in the same order (grouped
     by k, ascending, then by triangle), written straight into the output arrays (no per-k
-    einsum and repeats: 12 -> 0.4 ms on the Cornell box at R = 16)."""
+    einsum and repeats)."""
     k = np.where(k >= 1, k, 0)  # (a non-finite triangle: none, where numpy's path would fail)
     order = np.argsort(k, kind="stable")  # np.unique's groups, each in triangle order
     count = k[order] ** 2
@@ -337,10 +338,6 @@ def occluder_visibility(grid: Grid, triangles: np.ndarray) -> np.ndarray:
 #
 # Hot loops call no compiled function with array arguments (each such call counts references
 # to its arrays: atomic operations that cost more than the work per sub-triangle).
-# Against the kernels before (every sub-triangle a record scanned over the largest window,
-# fixed halves of the work per thread, fresh arrays), one process A/B on 2 shared cores:
-# occluder_volume on the Cornell box 2.6 -> 1.15 ms at R = 16, 14.3 -> 4.1 ms for the stated
-# 2 x 32^3 cascades, 28.6 -> 5.0 ms at R = 64; 100k small triangles (32^3) 361 -> 283 ms.
 
 _RECORD = 8  # (plane, u0, u1, u2, v0, v1, v2, area2) per kept sub-triangle and axis
 
@@ -353,15 +350,13 @@ def _occluder_compiled(grid: Grid, p: np.ndarray) -> tuple[np.ndarray, np.ndarra
     face_offsets' sums add the sub-triangles' terms in their order: the chunks taken from
     the front, in order, add their own; those taken from the back log them (face, weight,
     weighted distance), added after, chunk by chunk, in order."""
-    from .propagation.ordinates import _pool, pool_workers
-
     r = grid.resolution
     m = COVERAGE_SAMPLES
     if p.shape[0] == 0:
         return np.ones((6, r, r, r), np.float32), np.zeros((6, r, r, r), np.float32)
     normal, area2, k = _splits_compiled(p, SURFEL_SPACING * grid.cell_size)
-    pool = _pool()
-    chunks = max(1, min(_CHUNKS * pool_workers(), p.shape[0]))
+    pool = executor()
+    chunks = max(1, min(_CHUNKS * workers(), p.shape[0]))
     origin = grid.origin_array
     cell = float(grid.cell_size)
     far = float(np.max(np.abs(origin))) / cell  # (the origin's share of the rounding)
@@ -461,7 +456,6 @@ def _clear(hit, total, moment, busy, b0, b1):
 def _coverage_compiled(grid: Grid, tri: np.ndarray, m: int, out: np.ndarray) -> np.ndarray:
     """face_coverage by the compiled kernels: _project_subs' records and window, then the
     planes' coverage in parts on the pool."""
-    from .propagation.ordinates import _pool
 
     r = grid.resolution
     rec = np.empty((3, tri.shape[0], _RECORD))
@@ -477,16 +471,15 @@ def _coverage_compiled(grid: Grid, tri: np.ndarray, m: int, out: np.ndarray) -> 
         _cover_part(rec, first, nrec, r, m, window, b[0], b[1], hit)
         _finish_coverage(hit, m, r, b[0], b[1], out)
 
-    _run_parts(_pool(), part, work, windows, r)
+    _run_parts(executor(), part, work, windows, r)
     return out
 
 
 def _run_parts(pool, part, work: np.ndarray, windows: np.ndarray, r: int) -> None:
     """part((b0, b1), window) for the planes' parts (_parts), shared by this thread and the
     pool's (_front_back); window: the largest of the runs' windows (3, 2)."""
-    from .propagation.ordinates import pool_workers
 
-    bounds = np.empty(_CHUNKS * pool_workers() + 1, np.int64)
+    bounds = np.empty(_CHUNKS * workers() + 1, np.int64)
     window = np.zeros((3, 2))
     _parts(work, windows, r, bounds, window)
     parts = [b for b in itertools.pairwise(bounds) if b[0] < b[1]]
@@ -502,7 +495,6 @@ def _front_back(pool, front, back, count: int) -> list[int]:
     back(j) in descending order on the pool's other threads, until they meet; returns the
     chunks back did, ascending. This thread never waits for a pool thread that has not
     started (a busy machine's other core): it does the rest itself."""
-    from .propagation.ordinates import pool_workers
 
     lock = threading.Lock()
     ends = [0, count]  # the next chunk from the front, one past the next from the back
@@ -523,7 +515,7 @@ def _front_back(pool, front, back, count: int) -> list[int]:
             back(j)
             backs.append(j)
 
-    futures = [pool.submit(helper) for _ in range(min(pool_workers() - 1, count - 1))]
+    futures = [pool.submit(helper) for _ in range(min(workers() - 1, count - 1))]
     try:
         while (i := take(True)) >= 0:
             front(i)
@@ -1499,7 +1491,7 @@ def _finish_volume(hit, m, r, total, moment, busy, b0, b1, vis, gaps):
     cell_gaps compute them (np.maximum(x, 0.0): x where x > 0 or NaN, else +0.0), but only
     on busy planes: vis and gaps come filled with 1 and 0, all a plane without records, fills
     or offset terms (all-zero bits and sums) gives (the planes across z scattered through
-    both: 0.35 -> 0.04 ms at R = 32). Each plane is crossed by +axis from the cell below it
+    both). Each plane is crossed by +axis from the cell below it
     (axis index plane - 1) and -axis from the cell above (plane)."""
     for b in range(b0, b1):
         if not busy[b]:

@@ -1,8 +1,9 @@
-"""The LPV grid: a regular lattice of cells holding 2-band SH per colour channel.
+"""The LPV grid: a regular lattice of cells holding SH coefficients per colour channel.
 
-Storage is (R, R, R, 3, 4) float32 indexed [x, y, z, colour, coefficient]. A cell's value is
-the radiant intensity (W/sr) of the light passing through it [KD10 sec. 4]. A propagated
-discrete-ordinates grid (``angular="dom"``) has 9 coefficients, bands 0-2 (sh.evaluate_basis2).
+Storage is (R, R, R, 3, K) float32 indexed [x, y, z, colour, coefficient]. A cell's value is
+the radiant intensity (W/sr) of the light passing through it [KD10 sec. 4]. Injected light
+holds KD10's 2 bands (K = 4); a propagated discrete-ordinates grid (``angular="dom"``) holds
+bands 0-2 (K = 9, sh.evaluate_basis2), KD10's own propagation ("sh") stays at K = 4.
 """
 
 from __future__ import annotations
@@ -10,6 +11,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
+INJECTED_COEFFICIENTS = 4  # KD10's 2-band SH of injected light per colour
 
 
 @dataclass(frozen=True)
@@ -24,13 +27,13 @@ class Grid:
     def origin_array(self) -> np.ndarray:
         return np.asarray(self.origin, np.float64)
 
-    @property
-    def shape(self) -> tuple[int, int, int, int, int]:
+    def shape(self, coefficients: int = INJECTED_COEFFICIENTS) -> tuple[int, int, int, int, int]:
+        """(R, R, R, 3, coefficients): the array shape of a grid of this placement."""
         r = self.resolution
-        return (r, r, r, 3, 4)
+        return (r, r, r, 3, coefficients)
 
-    def zeros(self, coefficients: int = 4) -> np.ndarray:
-        return np.zeros(self.shape[:4] + (coefficients,), np.float32)
+    def zeros(self, coefficients: int = INJECTED_COEFFICIENTS) -> np.ndarray:
+        return np.zeros(self.shape(coefficients), np.float32)
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         lo = self.origin_array

@@ -12,7 +12,7 @@ import numpy as np
 
 from . import sh
 from .grid import Grid
-from .runtime import jit
+from .runtime import jit, pool
 
 
 def trilinear_corners(coords: np.ndarray, resolution: int):
@@ -124,8 +124,8 @@ _C0, _C1 = sh.C0, sh.C1  # sh.cosine_lobe's constants, as plain globals for the 
 # From SPLIT_MIN VPLs the compiled splat runs on two threads. On grids of up to SPLIT_CELLS
 # cells each takes half of the VPLs into float64 sums of its own (<= 393 KiB), added at the
 # end; on larger grids each adds only the corners in its own slab of one sum grid
-# (split_slabs): a second 3 MiB of sums cost more than the threads saved (R=32, random VPL
-# order: 11 -> 29 ms), and every cell still sums its VPLs in VPL order.
+# (split_slabs): a second 3 MiB of sums costs more than the threads save, and every cell
+# still sums its VPLs in VPL order.
 SPLIT_MIN = 8192
 SPLIT_CELLS = 16 ** 3
 SAMPLE_STEP = 16  # split_slabs histograms every 16th VPL: enough to balance the halves
@@ -151,7 +151,7 @@ def _inject_compiled(grid: Grid, positions, normals, flux, offset_cells, visibil
             else np.ascontiguousarray(index, np.int64))  # empty: every row, in order
     n = pos.shape[0] if index is None else rows.shape[0]
     args = (pos, nrm, phi, rows, origin, cell_size, shift, r, vis, use_vis)
-    out = np.empty(grid.shape, np.float32)  # every cell written by _store_box or _store_sum
+    out = np.empty(grid.shape(), np.float32)  # every cell written by _store_box or _store_sum
     flat = out.reshape(cells, 12)
     whole = np.array([[0, r], [0, r], [0, r]], np.int64)
     slabs = (split_slabs(pos, nrm, origin, cell_size, shift, r, rows)
@@ -162,10 +162,9 @@ def _inject_compiled(grid: Grid, positions, normals, flux, offset_cells, visibil
         acc, touched = _sums(cells)
         _splat_box(args, n, acc, touched, cells, whole, flat)
     else:  # two slabs of one sum grid on two threads (the kernel releases the GIL)
-        from .propagation.ordinates import _pool
 
         acc, touched = _sums(cells)
-        job = _pool().submit(_splat_box, args, n, acc, touched, cells + 1, slabs[1], flat)
+        job = pool.executor().submit(_splat_box, args, n, acc, touched, cells + 1, slabs[1], flat)
         _splat_box(args, n, acc, touched, cells, slabs[0], flat)
         job.result()
     return out
@@ -186,11 +185,10 @@ def _splat_box(args: tuple, n: int, acc, touched, spare: int, box, out) -> None:
 def _splat_halves(args: tuple, n: int, whole, out) -> None:
     """The VPLs in two halves on two threads (the kernel releases the GIL), each into sums of
     its own, ``out`` (R^3, 12) their sum."""
-    from .propagation.ordinates import _pool
 
     cells = out.shape[0]
     (acc, touched), (acc2, touched2) = _sums(cells), _sums(cells)
-    job = _pool().submit(_splat_kernel, *args, n // 2, n, acc2, touched2, cells, whole)
+    job = pool.executor().submit(_splat_kernel, *args, n // 2, n, acc2, touched2, cells, whole)
     _splat_kernel(*args, 0, n // 2, acc, touched, cells, whole)
     job.result()
     _store_sum(acc, touched, acc2, touched2, out)
@@ -257,7 +255,7 @@ if jit.numba is not None:  # the 4-wide add of the splat kernel, as LLVM vector 
     def _axpy4(typingctx, acc, at, w, a, b, c, d):
         """acc.flat[at:at + 4] += w x (a, b, c, d) as one 4-wide multiply and one add: the
         scalar products and sums bit for bit, which numba leaves scalar (its LLVM SLP
-        vectoriser is off). Splat of 35k VPLs on 32^3, one thread: 2.9 -> 2.2 ms.
+        vectoriser is off).
         ``acc``: a C-contiguous float64 array."""
         sig = _types.void(acc, at, w, a, b, c, d)
 

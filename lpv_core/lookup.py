@@ -15,8 +15,8 @@ import numpy as np
 from . import sh
 from .grid import Grid
 from .injection import trilinear_corners, visible_corners
-from .propagation import closure, ordinates
-from .runtime import jit
+from .propagation import closure
+from .runtime import jit, pool
 
 REPROJECTION_GAIN = np.pi / (sh.C0**2 + sh.C1**2)  # = 12/7
 OFFSET_CELLS = 0.5  # receivers read half a cell along their normal [KD10 sec. 4.4]
@@ -52,7 +52,7 @@ def gap_corrected(grid: Grid, positions: np.ndarray, gaps: np.ndarray | None) ->
     if jit.enabled():
         out = np.empty_like(p)
         g, q = np.ascontiguousarray(gaps), np.ascontiguousarray(p)
-        ordinates.in_halves(lambda sl: _gap_kernel(grid.origin_array, float(grid.cell_size),
+        pool.in_halves(lambda sl: _gap_kernel(grid.origin_array, float(grid.cell_size),
                                                    grid.resolution, g, q, out, sl.start,
                                                    sl.stop), p.shape[0])
         return out
@@ -87,7 +87,7 @@ def irradiance(
     positions: np.ndarray,
     normals: np.ndarray,
     offset_cells: float = OFFSET_CELLS,
-    angular: str = "sh",
+    angular: str = "dom",
     visibility: np.ndarray | None = None,
 ) -> np.ndarray:
     """Indirect irradiance (M, 3) in W/m^2 at receivers; samples half a cell along the normal.
@@ -96,17 +96,19 @@ def irradiance(
     read with the irradiance kernel of sh.irradiance_weights, exact for the clamped cosine up to
     band 2 (Ramamoorthi & Hanrahan 2001): a beam, an isotropic field and a uniform hemisphere
     (light leaving a lit floor: a floor receives none of it) all come out right to within the
-    kernel's band 4. ``angular="m1"`` (and a 4-coefficient "dom" grid): the cell is read as its
-    maximum-entropy lobe (closure.py), and the flux that passed through it becomes irradiance
-    Phi E[max(0, <-n, w>)] / s^2, exact for a beam (Phi / s^2 head-on) and for an isotropic
-    field (Phi / (4 s^2) = pi L), but it reads a hemisphere as a lobe with a tail behind it.
+    kernel's band 4. A 4-coefficient "dom" grid is read as its maximum-entropy lobe
+    (closure.py): the flux that passed through it becomes irradiance Phi E[max(0, <-n, w>)] /
+    s^2, exact for a beam (Phi / s^2 head-on) and for an isotropic field (Phi / (4 s^2) = pi
+    L), but it reads a hemisphere as a lobe with a tail behind it. ``angular="sh"`` (KD10's
+    grid, 4 coefficients): the clamped cosine lobe of the module docstring, times KD10's
+    gradient damping (``gradient_damping``).
     """
     positions = np.asarray(positions, np.float64)
     normals = np.asarray(normals, np.float64)
     if jit.enabled() and values.shape[-1] == sh.BANDS2 and positions.shape[0]:
         return _irradiance_compiled(grid, values, positions, normals, offset_cells, visibility)
-    coeffs = sample(grid, values, positions + normals * (offset_cells * grid.cell_size),
-                    visibility)
+    at = positions + normals * (offset_cells * grid.cell_size)
+    coeffs = sample(grid, values, at, visibility)
     if coeffs.shape[-1] == sh.BANDS2:
         e = np.einsum("mcs,ms->mc", coeffs, sh.irradiance_weights(normals))
         return np.maximum(e / (grid.cell_size**2), 0.0)
@@ -117,8 +119,35 @@ def irradiance(
         return np.maximum(e, 0.0)
     lobe = sh.cosine_lobe(-normals)  # light arriving at the receiver travels along -n
     e = np.einsum("mcs,ms->mc", coeffs, lobe)
+    if angular == "sh":
+        e *= gradient_damping(grid, values, at, normals, e, visibility)
     e *= REPROJECTION_GAIN / (grid.cell_size**2)
     return np.maximum(e, 0.0)
+
+
+def gradient_damping(grid: Grid, values: np.ndarray, at: np.ndarray, normals: np.ndarray,
+                     read: np.ndarray, visibility: np.ndarray | None = None) -> np.ndarray:
+    """KD10's damping of self-illumination at lookup (KD10 sec. 6, "Improving the quality",
+    light bleeding): the factor (M, 3) in [0, 1] by which a receiver's read of a 4-coefficient
+    grid is scaled.
+
+    A receiver reads E = <I, lobe(-n)>, the light travelling along -n, at the sample point
+    x_s = x + n s/2 (``at``; ``read`` = E(x_s) per colour). Light that really arrives from in
+    front of the surface comes from the +n side, so along +n it grows towards its source:
+    dE/dn >= 0. Where E instead falls along +n, the light read moves away from the surface's
+    back: it is the light of cells behind the surface that the trilinear read (and the
+    diffusive transport) smeared across it, the leak through a wall thinner than a cell.
+    With the one-cell central difference s dE/dn ~ E(x_s + n s/2) - E(x_s - n s/2), the
+    factor is 1 + s (dE/dn) / E clamped to [0, 1]: 1 where E does not fall along n, 0 where
+    it falls by all of E within one cell (light that a cell's length further from the
+    surface is gone came from behind it), linear between. Only the "sh" lookup uses it."""
+    lobe = sh.cosine_lobe(-np.asarray(normals, np.float64))
+    half = np.asarray(normals, np.float64) * (0.5 * grid.cell_size)
+    ahead = np.einsum("mcs,ms->mc", sample(grid, values, at + half, visibility), lobe)
+    behind = np.einsum("mcs,ms->mc", sample(grid, values, at - half, visibility), lobe)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        factor = np.where(read > 0, 1.0 + (ahead - behind) / read, 1.0)
+    return np.clip(factor, 0.0, 1.0)
 
 
 def _irradiance_compiled(grid: Grid, values: np.ndarray, positions: np.ndarray,
@@ -135,7 +164,7 @@ def _irradiance_compiled(grid: Grid, values: np.ndarray, positions: np.ndarray,
                       + [sh.IRRADIANCE_KERNEL[2]] * 5)
     pos, nrm = np.ascontiguousarray(positions), np.ascontiguousarray(normals)
     out = np.empty((pos.shape[0], 3), np.float64)
-    ordinates.in_halves(lambda sl: _irradiance_kernel(
+    pool.in_halves(lambda sl: _irradiance_kernel(
         grid.origin_array, float(grid.cell_size), r, flat, vis, kernel, pos, nrm,
         float(offset_cells), out, sl.start, sl.stop), pos.shape[0])
     return out

@@ -12,9 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .propagation import ordinates
 from .render.raster import TRIANGLE_SPLIT, Rasterizer
-from .runtime import jit
+from .runtime import jit, pool
 from .scene import lights as lights_mod
 from .scene.model import Light
 
@@ -119,7 +118,7 @@ def _vpls(light: Light, view: lights_mod.LightView, p4, n4, reflectance, origin)
         n = _vpl_kernel(*args, 0, size, *out)
         return tuple(a[:n] for a in out)
     half = _half_row(p4)
-    n0, n1 = ordinates._pool().map(lambda rows: _vpl_kernel(*args, *rows, *out),
+    n0, n1 = pool.executor().map(lambda rows: _vpl_kernel(*args, *rows, *out),
                                    ((0, half), (half, size)))
     if n0 < half * size and n1:
         _move_rows(*out, half * size, n0, n1)
@@ -165,7 +164,7 @@ def _vpl_kernel(p4, n4, reflectance, origin, ortho, tan_half, half_extent, right
     irradiance ``power`` times the texel area), written in texel order into pos, nrm, flux,
     area from row row0 * size on; returns how many. The texel's reflectance is its triangle's
     (Rasterizer.triangles). Per-row and per-column terms are hoisted and divisions turned into
-    products where that moves the result by a few ulps (one thread, 36k VPLs: 1.5 -> 1.0 ms)."""
+    products where that moves the result by a few ulps."""
     texel_area = (2.0 * half_extent / size) * (2.0 * half_extent / size)
     texel_solid = (2.0 * tan_half / size) * (2.0 * tan_half / size)
     point = power / (4.0 * np.pi)

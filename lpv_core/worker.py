@@ -118,7 +118,8 @@ def load_scene(path: str) -> Scene:
 
 
 def _cosine_table(n: int = 64):
-    """E[max(0, <c, w>)] over (mean cosine, <c, d>) for the "m1" lookup, or None."""
+    """E[max(0, <c, w>)] over (mean cosine, <c, d>) for the lobe lookup of a 4-coefficient
+    "dom" grid (closure.LOBE_MODELS), or None."""
     try:
         from .propagation import closure
     except ImportError:
@@ -164,7 +165,7 @@ def save_result(path: str, result, scene: Scene) -> None:
             out[f"fine_{i}_visibility"] = np.asarray(vis, np.float32)
         if gaps.get(grid) is not None:
             out[f"fine_{i}_gaps"] = np.asarray(gaps[grid], np.float32)
-    if getattr(scene.settings, "angular", "sh") in closure.LOBE_MODELS:
+    if getattr(scene.settings, "angular", "dom") in closure.LOBE_MODELS:
         table = _cosine_table()
         if table is not None:
             out["cosine_table"] = table

@@ -37,7 +37,7 @@ def sub(name):
     return importlib.import_module(f"{module}.lpv_addon.{name}")
 
 def enabled_state():
-    h, ov, lv = sub("handlers"), sub("overlay"), sub("live")
+    h, ov, lv = sub("viewport.handlers"), sub("viewport.overlay"), sub("viewport.live")
     menu = sum(getattr(f, "__module__", "").startswith(module)
                for f in bpy.types.VIEW3D_MT_add._dyn_ui_initialize())
     return {"handlers": ours_in_handlers(), "timer": bpy.app.timers.is_registered(h.timer),
@@ -52,18 +52,14 @@ r.engine, r.resolution_x, r.resolution_y = "BLENDER_WORKBENCH", 8, 8
 bpy.ops.render.render(write_still=False)
 
 def build_scene():
-    sub("scenes").cornell_box("SPOT", resolution=(32, 32))
+    sub("scene_io.demo").cornell_box("SPOT", resolution=(32, 32))  # the shipped demo
     scene = bpy.context.scene
     scene.lpv.quality = "DRAFT"
     scene.lpv.rsm_resolution = 32
     return scene
 
-def fast():
-    known = sub("live").core.scene.GISettings.__dataclass_fields__
-    return {k: v for k, v in (("angular", "sh"), ("direction_groups", 1)) if k in known}
-
 def draw_once():
-    ov = sub("overlay")
+    ov = sub("viewport.overlay")
     off = gpu.types.GPUOffScreen(16, 16)
     with off.bind():
         ov.draw(bpy.context.scene.camera.matrix_world.inverted(),
@@ -78,14 +74,14 @@ for i in range(20):
     work = i % 5 == 0
     if work:  # exercise the live engine, the worker and GPU resources before disabling
         scene = build_scene()
-        lv = sub("live")
-        lv.refresh(scene, wait=True, overrides=fast())
+        lv = sub("viewport.live")
+        lv.refresh(scene, wait=True)
         state["lpv"] = lv.STATE.current is not None and lv.STATE.current.values is not None
         procs.append(lv.STATE.client.proc)
         draw_once()
-        state["resources"] = sub("overlay").resource_count()
-    timers.append(sub("handlers").timer)
-    ov_mod, lv_mod = sub("overlay"), sub("live")
+        state["resources"] = sub("viewport.overlay").resource_count()
+    timers.append(sub("viewport.handlers").timer)
+    ov_mod, lv_mod = sub("viewport.overlay"), sub("viewport.live")
     addon_utils.disable(module, default_set=True)
     state["after_disable"] = {
         "handlers": ours_in_handlers(),
@@ -108,17 +104,17 @@ out["enabled_after_loop"] = enabled_state()
 # Reload files: handlers stay exactly once, the live state of the old file is gone.
 scene = build_scene()
 scene.lpv.intensity = 1.75
-sub("live").refresh(scene, wait=True, overrides=fast())
+sub("viewport.live").refresh(scene, wait=True)
 path = os.path.join(tmp, "reload.blend")
 bpy.ops.wm.save_as_mainfile(filepath=path)
 bpy.ops.wm.open_mainfile(filepath=path)
 out["after_reload"] = enabled_state()
 out["reload_intensity"] = bpy.context.scene.lpv.intensity
-out["reload_result_dropped"] = sub("live").STATE.current is None
-out["reload_worker_stopped"] = sub("live").STATE.client is None
+out["reload_result_dropped"] = sub("viewport.live").STATE.current is None
+out["reload_worker_stopped"] = sub("viewport.live").STATE.client is None
 bpy.ops.wm.read_homefile(use_empty=True)
 out["after_homefile"] = enabled_state()
-ov_mod, lv_mod = sub("overlay"), sub("live")
+ov_mod, lv_mod = sub("viewport.overlay"), sub("viewport.live")
 addon_utils.disable(module, default_set=True)
 out["final"] = {"handlers": ours_in_handlers(),
                 "timers": sum(bpy.app.timers.is_registered(t) for t in timers),

@@ -12,7 +12,10 @@ import pytest
 bpy = pytest.importorskip("bpy")
 
 import lpv_addon
-from lpv_addon import handlers, live, operators, properties
+from lpv_addon import operators, properties
+from lpv_addon.render import compare
+from lpv_addon.render.frames import BatchJob
+from lpv_addon.viewport import handlers, live
 from lpv_core.render import exr
 from tools import scenes
 
@@ -103,7 +106,7 @@ def test_render_batch_needs_a_camera(box, tmp_path):
 
 def test_batch_job_steps_like_the_modal_operator_and_cancel_keeps_frames(box, tmp_path):
     box.frame_start, box.frame_end = 1, 4
-    job = live.BatchJob(box, tmp_path, (1, 4))
+    job = BatchJob(box, tmp_path, (1, 4))
     job.start()
     steps = 0
     while len(job.done) < 2:  # non-blocking steps, as the modal timer drives them
@@ -121,6 +124,21 @@ def test_batch_job_steps_like_the_modal_operator_and_cancel_keeps_frames(box, tm
     assert not list(tmp_path.glob(".*"))
     stats = json.loads((tmp_path / "stats.json").read_text())
     assert stats["cancelled"] is True and len(stats["frames"]) == 2
+
+
+def test_the_cli_and_the_operator_share_one_frame_loop(box, tmp_path):
+    """The same BatchJob with the engine in this process (the CLI) and in the worker (the
+    operator): the same pixels and the same stats.json entries."""
+    here, there = tmp_path / "here", tmp_path / "worker"
+    BatchJob(box, here, (1, 1), in_process=True).run()
+    BatchJob(box, there, (1, 1)).run()
+    a, b = (exr.read_multilayer(d / "0001.exr") for d in (here, there))
+    assert set(a) == set(b)
+    for name in a:
+        np.testing.assert_allclose(a[name], b[name], rtol=1e-4, atol=1e-6, err_msg=name)
+    fa, fb = (json.loads((d / "stats.json").read_text())["frames"][0] for d in (here, there))
+    assert set(fa) == set(fb) and fa["frame"] == fb["frame"] == 1
+    assert fa["extract_ms"] and fb["ms"]["extract"] > 0
 
 
 def test_compare_cycles_makes_a_red_green_heatmap(box):
@@ -142,7 +160,7 @@ def test_error_heatmap_colours():
     ours = ref.copy()
     ours[0, 0] = 3.0  # too bright: red
     ours[1, 1] = 0.0  # too dark: green
-    heat, metrics = operators.error_heatmap(ours, ref)
+    heat, metrics = compare.error_heatmap(ours, ref)
     np.testing.assert_array_equal(heat[0, 0], [1, 0, 0, 1])
     np.testing.assert_array_equal(heat[1, 1], [0, 1, 0, 1])
     np.testing.assert_array_equal(heat[0, 1], [0, 0, 0, 1])

@@ -4,7 +4,8 @@ Blender process (the engine runs in the worker; moderngl never enters the drawin
 Pixels are checked against the core deferred renderer (Diffuse Indirect x Diffuse Color of
 the same camera): the overlay shows indirect light exactly where the LPV says, nothing where
 gi_receiver is off, adds onto the viewport in ADD mode, blends old and new results while
-fading in, scales inside transition areas, and draws the debug views."""
+fading in, scales inside transition areas, and draws the debug views. The overlay shows the
+product's transport only: 9-coefficient grids (``angular="dom"``)."""
 
 from __future__ import annotations
 
@@ -27,7 +28,8 @@ import json, os, sys
 import bpy, gpu
 import numpy as np
 import lpv_addon
-from lpv_addon import live, overlay
+from lpv_addon.render import compare
+from lpv_addon.viewport import live, overlay
 from tools import scenes
 
 W = H = int(sys.argv[2])
@@ -63,24 +65,22 @@ def shot(mode, clear=(0, 0, 0, 0), **kw):
     return np.array(buf.to_list(), np.float32).reshape(H, W, 4)[::-1]  # top row first
 
 from lpv_core.render import deferred
-from lpv_core import worker as live_worker, lookup, sh
+from lpv_core import lookup, sh
 from lpv_core.grid import Grid
 from lpv_core.scene import GISettings
-# The default model ("dom": 9 SH coefficients per colour) for most shots; each model is
-# compared once below.
-FAST = {k: v for k, v in (("direction_groups", 1),) if k in GISettings.__dataclass_fields__}
+FAST = {}  # the default settings: the product's transport, 9 SH coefficients per colour
 
 def expected(**overrides):
     # one sample at each pixel centre, as the overlay draws (renders average antialias^2)
-    passes, _ = live.render_passes(scene, (W, H),
-                                   overrides={**FAST, "antialias": 1, **overrides})
+    passes, _ = compare.render_passes(scene, (W, H),
+                                      overrides={**FAST, "antialias": 1, **overrides})
     return passes["Diffuse Indirect"] * passes["Diffuse Color"]
 
 def refresh():
     live.mark_dirty("test")
     live.refresh(scene, wait=True, overrides=FAST)
 
-def synthetic(coefficients, angular, seed, visibility, gapped=False):
+def synthetic(seed, visibility, gapped=False):
     # The overlay of a made-up grid on a plane z = 0 seen straight on by an orthographic
     # camera (pixel centres are known world points) and lookup.irradiance there: 8 x 8 quads
     # of 8 x 8 pixels, each with its own normal facing the camera, so bands 1 and 2 vary.
@@ -88,7 +88,7 @@ def synthetic(coefficients, angular, seed, visibility, gapped=False):
     # mostly 0) that move the sample points (lookup.sample_points).
     rng = np.random.default_rng(seed)
     grid = Grid((-1.2, -1.2, -1.2), 0.3, 8)
-    values = rng.normal(0.0, 0.3, (8, 8, 8, 3, coefficients)).astype(np.float32)
+    values = rng.normal(0.0, 0.3, (8, 8, 8, 3, sh.BANDS2)).astype(np.float32)
     values[..., 0] = rng.uniform(1.0, 2.0, (8, 8, 8, 3))
     vis = rng.uniform(0.0, 1.0, (6, 8, 8, 8)).astype(np.float32) if visibility else None
     gaps = None
@@ -112,8 +112,7 @@ def synthetic(coefficients, angular, seed, visibility, gapped=False):
     live.STATE.serial += 1
     result = live.LiveResult(
         serial=live.STATE.serial, grid=grid, values=values, per_light={}, lights=[],
-        settings=GISettings(angular=angular), areas=[], geometry=geometry, visibility=vis,
-        cosine_table=live_worker._cosine_table(), gaps={grid: gaps})
+        settings=GISettings(), areas=[], geometry=geometry, visibility=vis, gaps={grid: gaps})
     view = np.eye(4)
     view[2, 3] = -5.0  # camera at z = 5 looking down -z
     proj = np.diag([1.0, 1.0, -0.2, 1.0])  # orthographic, x, y in [-1, 1], z in [0, 10]
@@ -137,7 +136,7 @@ def synthetic(coefficients, angular, seed, visibility, gapped=False):
     pos[:, 2] += deferred.VIEWER_NUDGE_CELLS * grid.cell_size  # deferred.toward_viewer
     nrm = normals[quad.ravel()]
     at = lookup.sample_points(grid, pos, nrm, gaps)
-    e = lookup.irradiance(grid, values, at, nrm, offset_cells=0.0, angular=angular,
+    e = lookup.irradiance(grid, values, at, nrm, offset_cells=0.0, angular="dom",
                           visibility=vis)
     # interior pixels of each quad (an edge pixel may go to either neighbour), and with
     # visibility none whose sample lies on a plane where the nearest cell changes (the
@@ -161,7 +160,7 @@ def synthetic(coefficients, angular, seed, visibility, gapped=False):
             near[:, a] |= (lo > 0) & (np.abs(fr[:, a] - lo) < 0.01)
             near[:, a] |= (up > 0) & (np.abs(1.0 - fr[:, a] - up) < 0.01)
         inner &= ~near.any(axis=1).reshape(H, W)
-        plain = lookup.irradiance(grid, values, pos, nrm, angular=angular, visibility=vis)
+        plain = lookup.irradiance(grid, values, pos, nrm, angular="dom", visibility=vis)
         moved = (np.abs(at - lookup.sample_points(grid, pos, nrm, None)).max(axis=1) > 1e-9) \
             & (np.abs(plain - e).max(axis=1) > 0.05 * e.max())
         moved = moved.reshape(H, W)
@@ -169,15 +168,13 @@ def synthetic(coefficients, angular, seed, visibility, gapped=False):
 
 warm_up()
 res = {}
-# The overlay's shader against lookup.irradiance on made-up grids: 9 coefficients (the
-# irradiance kernel, with propagation visibility), 4 read as "sh" and as "m1"; with made-up
-# cell gaps (lookup.sample_points moves the sample points).
-for name, k, angular, vis, gapped in (
-        ("syn9", sh.BANDS2, "dom", True, False), ("syn4_sh", 4, "sh", False, False),
-        ("syn4_m1", 4, "m1", True, False), ("syn9_gaps", sh.BANDS2, "dom", True, True),
-        ("syn4_sh_gaps", 4, "sh", False, True)):
+# The overlay's shader against lookup.irradiance on made-up 9-coefficient grids (the
+# irradiance kernel), with and without propagation visibility; with made-up cell gaps
+# (lookup.sample_points moves the sample points).
+for name, vis, gapped in (("syn9", True, False), ("syn9_free", False, False),
+                          ("syn9_gaps", True, True), ("syn9_free_gaps", False, True)):
     res[name], res[name + "_expect"], res[name + "_inner"], res[name + "_moved"] = \
-        synthetic(k, angular, 7, vis, gapped)
+        synthetic(7, vis, gapped)
 
 # PROBES glyphs of a 9-coefficient cell: the radius follows the function of all 9 coefficients.
 g1 = Grid((0.0, 0.0, 0.0), 1.0, 1)
@@ -185,16 +182,18 @@ one = np.zeros((1, 1, 1, 3, sh.BANDS2), np.float32)
 one[..., :] = sh.evaluate_basis2(np.array([0.0, 0.0, 1.0]))  # a beam along +z
 pos9, col9 = overlay.probe_glyphs(g1, one)
 res["probe9_pos"], res["probe9_col"] = pos9, col9
-pos4, _ = overlay.probe_glyphs(g1, np.ascontiguousarray(one[..., :4]))
+low = one.copy()
+low[..., 4:] = 0.0  # the same beam in bands 0-1 only
+pos4, _ = overlay.probe_glyphs(g1, low)
 res["probe4_pos"] = pos4
-
-# The engine's angular models ("dom": discrete ordinates, 9 coefficients; "sh": KD10's
-# clamped SH; "m1": max-entropy lobe), when the engine has them: the shader mirrors each lookup.
-models = ["dom", "sh", "m1"] if "angular" in GISettings.__dataclass_fields__ else []
-for model in models:
-    live.refresh(scene, wait=True, overrides={**FAST, "angular": model})
-    res["model_" + model] = shot("INDIRECT")
-    res["expect_model_" + model] = expected(angular=model)
+# Other grid formats (the retired 4-coefficient models) are refused, not drawn wrongly.
+refused = []
+for fn in (overlay.lpv_textures, overlay.probe_glyphs):
+    try:
+        fn(g1, np.ascontiguousarray(one[..., :4]))
+    except ValueError as exc:
+        refused.append("9 expected" in str(exc))
+res["refuses_4"] = np.array(refused)
 # Two cascades (the inner one follows the camera): every cascade adds its lookup.
 scene.lpv.cascades = 2
 scene.lpv.cascades_auto = False  # exactly two (the planner would keep one for this view)
@@ -291,25 +290,15 @@ def test_indirect_only_matches_the_deferred_lookup(shots):
     assert got[expect.max(axis=2) == 0].max() < 1e-6
 
 
-@pytest.mark.parametrize("model", ["dom", "sh", "m1"])
-def test_both_angular_models_match(shots, model):
-    if f"model_{model}" not in shots:
-        pytest.skip(f"the engine has no angular model {model!r}")
-    got, expect = shots[f"model_{model}"][..., :3], shots[f"expect_model_{model}"]
-    m = _mask(expect)
-    rel = np.abs(got[m] - expect[m]) / expect[m]
-    assert np.median(rel) < 0.01 and np.percentile(rel, 95) < 0.05, model
-
-
 def test_default_model_draws_nine_coefficients(shots):
     assert int(shots["coefficients"]) == 9  # angular="dom": bands 0-2
 
 
-@pytest.mark.parametrize("name", ["syn9", "syn4_sh", "syn4_m1", "syn9_gaps", "syn4_sh_gaps"])
+@pytest.mark.parametrize("name", ["syn9", "syn9_free", "syn9_gaps", "syn9_free_gaps"])
 def test_shader_repeats_lookup_irradiance(shots, name):
-    """Per pixel, the fragment shader gives lookup.irradiance / pi of the grid (9 coefficients:
-    the irradiance kernel; 4: the clamped SH or the "m1" lobe), up to half-float storage; with
-    cell gaps, read at lookup.sample_points (the point moved out of the cut-off slabs)."""
+    """Per pixel, the fragment shader gives lookup.irradiance / pi of the 9-coefficient grid
+    (the irradiance kernel), up to half-float storage; with cell gaps, read at
+    lookup.sample_points (the point moved out of the cut-off slabs)."""
     got, expect, inner = shots[name], shots[name + "_expect"], shots[name + "_inner"]
     assert inner.sum() > 0.5 * W * H
     lit = inner & (expect.max(axis=2) > 0.05 * expect.max())
@@ -336,7 +325,7 @@ def test_cascade_gaps_come_from_the_worker(shots):
 
 def test_probe_glyphs_read_nine_coefficients(shots):
     """A beam along +z in 9 coefficients: its glyph reaches furthest along +z, and its lobe is
-    narrower than the 4-coefficient one (band 2 sharpens it)."""
+    narrower than the same beam's without band 2 (band 2 sharpens it)."""
     pos9, col9, pos4 = shots["probe9_pos"], shots["probe9_col"], shots["probe4_pos"]
     assert pos9.shape[0] > 0 and pos9.shape[0] == col9.shape[0] == pos4.shape[0]
     assert np.isfinite(pos9).all() and np.isfinite(col9).all()
@@ -346,6 +335,10 @@ def test_probe_glyphs_read_nine_coefficients(shots):
     side9 = np.linalg.norm(d9[:, :2], axis=1).max() / np.linalg.norm(d9, axis=1).max()
     side4 = np.linalg.norm(d4[:, :2], axis=1).max() / np.linalg.norm(d4, axis=1).max()
     assert side9 < side4
+
+
+def test_only_nine_coefficient_grids_are_drawn(shots):
+    assert shots["refuses_4"].tolist() == [True, True]
 
 
 def test_cascades_add_up_like_the_renderer(shots):

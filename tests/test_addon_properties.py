@@ -11,7 +11,8 @@ import pytest
 bpy = pytest.importorskip("bpy")
 
 import lpv_addon
-from lpv_addon import extract, properties
+from lpv_addon import properties
+from lpv_addon.scene_io import extract
 from tools import scenes
 
 pytestmark = pytest.mark.bpy

@@ -16,11 +16,19 @@ def _cli(*args):
                           capture_output=True, text=True, check=False)
 
 
+# ``python -m lpv_addon.batch`` with the measurement tools unimportable, as in the extension
+# zip (which leaves tools/ out): the demo is the add-on's own.
+WITHOUT_TOOLS = ("import runpy, sys; sys.modules['tools'] = None; "
+                 "runpy.run_module('lpv_addon.batch', run_name='__main__', alter_sys=True)")
+
+
 @pytest.fixture(scope="module")
 def demo_out(tmp_path_factory):
     out = tmp_path_factory.mktemp("demo")
-    proc = _cli("--demo", "--out", str(out), "--resolution", "64x48",
-                "--set", "grid_resolution=16", "--set", "rsm_resolution=64")
+    proc = subprocess.run([sys.executable, "-c", WITHOUT_TOOLS, "--demo", "--out", str(out),
+                           "--resolution", "64x48", "--set", "grid_resolution=16",
+                           "--set", "rsm_resolution=64"],
+                          cwd=ROOT, capture_output=True, text=True, check=False)
     assert proc.returncode == 0, proc.stderr[-2000:]
     return out, proc
 

@@ -76,7 +76,7 @@ def test_zip_contents(ext_zip: Path, wheels: list[Path]) -> None:
     for required in (
         "blender_manifest.toml",
         "__init__.py",
-        "lpv_core/scene.py",
+        "lpv_core/scene/model.py",
         "lpv_addon/properties.py",
     ):
         assert required in names, required

@@ -10,7 +10,7 @@ bpy = pytest.importorskip("bpy")
 from bpy_extras.object_utils import world_to_camera_view
 from mathutils import Vector
 
-from lpv_addon import extract
+from lpv_addon.scene_io import extract
 
 pytestmark = pytest.mark.bpy
 

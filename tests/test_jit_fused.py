@@ -1,7 +1,7 @@
-"""Compiled fused steps of the discrete-ordinates sweep (lpv_core/sweep.py launch_solve and
-fold_parts, lpv_core/ordinates.py unfold_sparse and add_emission_band2): the same numbers as
-the numpy code, which stays the reference (jit.disabled()), and the same as the unfused steps
-they replace."""
+"""Compiled parts of the discrete-ordinates propagation around the sweep (ordinates.launch
+inside sweep.launch_solve, ordinates.unfold_sparse and add_emission_band2, cascades' hand-on
+and assign): the same numbers as the numpy code, which stays the reference
+(jit.disabled())."""
 
 import numpy as np
 import pytest
@@ -10,8 +10,8 @@ pytest.importorskip("numba")
 
 from test_jit_launch import _visibility, _vpls
 
-from lpv_core import propagation, sh
-from lpv_core.propagation import ordinates
+from lpv_core import sh
+from lpv_core.propagation import ordinates, quadrature
 from lpv_core.propagation import sweep as transport_sweep
 from lpv_core.runtime import jit
 
@@ -32,7 +32,7 @@ def _passing(r: int, seed: int) -> np.ndarray:
 def test_launch_solve_is_launch_then_solve_less_the_handed_on_light(shell, handed_on):
     r = 10
     injected = _vpls(r, seed=3)
-    offvis = propagation._offset_visibilities(_visibility(r, seed=4))
+    offvis = quadrature.offset_visibilities(_visibility(r, seed=4))
     passing = _passing(r, seed=5) if handed_on else None
     got = transport_sweep.launch_solve(injected, offvis, passing, offvis, shell)
     # the steps apart, compiled: launch, the handed-on light unfolded densely, solve, less it
@@ -71,24 +71,6 @@ class _null:
 
     def __exit__(self, *exc):
         return False
-
-
-@pytest.mark.parametrize("shell", [True, False])
-def test_fold_parts_is_the_two_folds(shell):
-    r = 9
-    light = np.random.default_rng(2).uniform(0, 1, (ordinates.DIRECTIONS, 3, (r + 2) ** 3))
-    light = light.astype(np.float32)
-    values, outflow = transport_sweep.fold_parts(light, r, shell)
-    want = transport_sweep.fold(light, r, sh.BANDS2)
-    assert values.shape == (r, r, r, 3, sh.BANDS2) and values.dtype == np.float32
-    np.testing.assert_allclose(values, want, rtol=1e-5, atol=1e-5 * np.abs(want).max())
-    if shell:
-        want = transport_sweep.fold(light, r, 4, "shell")
-        assert outflow.shape == want.shape == (r + 2, r + 2, r + 2, 3, 4)
-        np.testing.assert_allclose(outflow, want, rtol=1e-5, atol=1e-5 * np.abs(want).max())
-        assert not outflow[1:-1, 1:-1, 1:-1].any()
-    else:
-        assert outflow is None
 
 
 def test_add_emission_band2_is_emission_band2():

@@ -6,8 +6,8 @@ import pytest
 
 pytest.importorskip("numba")
 
-from lpv_core import grid, injection, propagation
-from lpv_core.propagation import closure, ordinates
+from lpv_core import grid, injection
+from lpv_core.propagation import closure, ordinates, quadrature
 from lpv_core.runtime import jit
 
 
@@ -64,7 +64,7 @@ def test_compiled_launch_is_the_numpy_launch(r, occluded):
     assert jit.enabled()
     injected = _vpls(r, seed=r + occluded)
     assert _against_own_octant(injected) > 0
-    offvis = propagation._offset_visibilities(_visibility(r, seed=r)) if occluded else None
+    offvis = quadrature.offset_visibilities(_visibility(r, seed=r)) if occluded else None
     got, want = _both(injected, offvis)
     assert got.shape == want.shape == (ordinates.DIRECTIONS, 3, (r + 2) ** 3)
     assert got.dtype == want.dtype == np.float32
@@ -79,7 +79,7 @@ def test_compiled_launch_of_a_grid_with_no_lit_cell_is_zero():
     injected = np.zeros((6, 6, 6, 3, 4), np.float32)
     injected[1, 2, 3, :, 0] = -0.5  # band 0 <= 0: not lit
     injected[2, 2, 2, :, 1] = 0.3
-    offvis = propagation._offset_visibilities(_visibility(6, seed=1))
+    offvis = quadrature.offset_visibilities(_visibility(6, seed=1))
     for vis in (None, offvis):
         got, want = _both(injected, vis)
         assert got.shape == want.shape and got.dtype == want.dtype == np.float32

@@ -58,7 +58,7 @@ def test_octant_sweep_through_nearly_opaque_walls():
     injected = _vpls(r, seed=5)
     passing = _passing(r, seed=6)
     visibility = (10.0 ** rng.uniform(-25, -15, (6, r, r, r))).astype(np.float32)
-    got = octants.launch_sweep_fold(injected, visibility, passing, True, True)
+    got = octants._launch_sweep_fold_compiled(injected, visibility, passing, True, True)
     want = _reference(injected, visibility, passing, True, True)
     assert np.isfinite(got[0]).all() and np.isfinite(got[1]).all()
     assert np.count_nonzero((want[0] != 0) & (np.abs(want[0]) < np.finfo(np.float32).tiny))

@@ -21,9 +21,9 @@ import pytest
 
 bpy = pytest.importorskip("bpy")
 
-from lpv_addon import reference
+from lpv_addon.render import cycles
 from lpv_core.render import exr
-from tools import scenes
+from tools import scene_hash, scenes
 
 pytestmark = pytest.mark.bpy
 
@@ -41,8 +41,8 @@ SS = 8  # supersamples per pixel axis for the predictions (box filter = pixel av
 def _settings_snapshot(scene) -> str:
     vl = scene.view_layers[0]
     return json.dumps(
-        [reference._rna(scene.render, 1), reference._rna(scene.cycles, 0),
-         reference._rna(vl, 0), scene.render.filepath],
+        [scene_hash._rna(scene.render, 1), scene_hash._rna(scene.cycles, 0),
+         scene_hash._rna(vl, 0), scene.render.filepath],
         sort_keys=True, default=repr,
     )
 
@@ -54,7 +54,7 @@ def _plane_scene(albedo: float = 0.8, y_min: float = -20.0):
     mesh = bpy.data.meshes.new("Plane")
     mesh.from_pydata([(-20, y_min, 0), (20, y_min, 0), (20, 20, 0), (-20, 20, 0)], [],
                      [(0, 1, 2, 3)])
-    mesh.materials.append(scenes._material("White", (albedo,) * 3, "DIFFUSE"))
+    mesh.materials.append(scenes.diffuse_material("White", (albedo,) * 3, "DIFFUSE"))
     ob = bpy.data.objects.new("Plane", mesh)
     scene.collection.objects.link(ob)
     cam = bpy.data.cameras.new("Cam")
@@ -86,7 +86,7 @@ def _add_light(scene, kind, energy, location=(0, 0, 1), rotation=(0, 0, 0), **se
 
 
 def _render(tmp_path, samples, name="r.exr", resolution=(N, N)):
-    info = reference.render_cycles_passes(tmp_path / name, samples=samples, resolution=resolution)
+    info = cycles.render_cycles_passes(tmp_path / name, samples=samples, resolution=resolution)
     return exr.read_multilayer(info["path"])
 
 
@@ -122,7 +122,7 @@ def cornell(tmp_path_factory):
     scene = bpy.context.scene
     before = _settings_snapshot(scene)
     out = tmp_path_factory.mktemp("cornell") / "cornell.exr"
-    info = reference.render_cycles_passes(out, samples=16)
+    info = cycles.render_cycles_passes(out, samples=16)
     after = _settings_snapshot(scene)
     return {"facts": facts, "info": info, "before": before, "after": after,
             "passes": exr.read_multilayer(out)}
@@ -130,7 +130,7 @@ def cornell(tmp_path_factory):
 
 def test_cornell_passes_present_and_finite(cornell):
     p = cornell["passes"]
-    assert set(reference.PASSES) <= set(p)
+    assert set(cycles.PASSES) <= set(p)
     assert p["Combined"].shape == (32, 32, 4)
     for name in ("Diffuse Direct", "Diffuse Indirect", "Diffuse Color"):
         assert p[name].shape == (32, 32, 3)
@@ -162,7 +162,7 @@ def test_cornell_settings_restored(cornell):
 def test_channel_names_equal_our_writer(cornell, tmp_path):
     p = cornell["passes"]
     ours = tmp_path / "ours.exr"
-    exr.write_multilayer(ours, {k: p[k] for k in reference.PASSES})
+    exr.write_multilayer(ours, {k: p[k] for k in cycles.PASSES})
     assert exr.channel_names(ours) == exr.channel_names(cornell["info"]["path"])
     assert "ViewLayer.Diffuse Indirect.R" in exr.channel_names(ours)
 
@@ -177,9 +177,9 @@ def test_settings_restored_on_error(tmp_path, monkeypatch):
     def boom(src, dst):
         raise OSError("simulated failure after the render")
 
-    monkeypatch.setattr(reference.os, "replace", boom)
+    monkeypatch.setattr(cycles.os, "replace", boom)
     with pytest.raises(OSError, match="simulated"):
-        reference.render_cycles_passes(tmp_path / "x.exr", samples=1)
+        cycles.render_cycles_passes(tmp_path / "x.exr", samples=1)
     monkeypatch.undo()
     assert _settings_snapshot(scene) == before
     assert list(tmp_path.iterdir()) == []  # no temporary render left behind
@@ -189,7 +189,7 @@ def test_render_other_scene_is_reproducible(tmp_path):
     # Same content renders bit-identically whether it is the context scene of a fresh file
     # or a second scene created with bpy.data.scenes.new (whose Cycles defaults differ).
     scenes.cornell_box("POINT", resolution=(12, 12))
-    h = reference.scene_hash()
+    h = scene_hash.scene_hash()
     first = _render(tmp_path, 2, "first.exr", resolution=None)
     scenes.cornell_box("SPOT", resolution=(12, 12))
     facts = scenes.cornell_box("POINT", resolution=(12, 12), new_file=False)
@@ -197,10 +197,10 @@ def test_render_other_scene_is_reproducible(tmp_path):
     if bpy.context.window is not None:
         bpy.context.window.scene = bpy.data.scenes["cornell_spot"]
     assert bpy.context.scene != other
-    assert reference.scene_hash(other) == h
-    info = reference.render_cycles_passes(tmp_path / "second.exr", samples=2, scene=other)
+    assert scene_hash.scene_hash(other) == h
+    info = cycles.render_cycles_passes(tmp_path / "second.exr", samples=2, scene=other)
     second = exr.read_multilayer(info["path"])
-    for name in reference.PASSES:
+    for name in cycles.PASSES:
         np.testing.assert_array_equal(second[name], first[name])
 
 
@@ -263,12 +263,12 @@ def test_principled_variant_and_save_scene(tmp_path):
 
 def test_scene_hash_follows_content():
     scenes.cornell_box("SPOT", resolution=(32, 32))
-    h = reference.scene_hash()
-    assert h == reference.scene_hash()
+    h = scene_hash.scene_hash()
+    assert h == scene_hash.scene_hash()
     scenes.cornell_box("SPOT", resolution=(32, 32))
-    assert reference.scene_hash() == h  # rebuilt: same content, same hash
+    assert scene_hash.scene_hash() == h  # rebuilt: same content, same hash
     bpy.data.objects["TallBlock"].name = "Renamed"
-    assert reference.scene_hash() == h  # names are not content
+    assert scene_hash.scene_hash() == h  # names are not content
     changes = [
         lambda: setattr(bpy.data.lights["Spot"], "energy", 301.0),
         lambda: setattr(bpy.data.objects["ShortBlock"], "location", (0.3, -0.3, 0.0)),
@@ -281,15 +281,15 @@ def test_scene_hash_follows_content():
     for change in changes:
         scenes.cornell_box("SPOT", resolution=(32, 32))
         change()
-        assert reference.scene_hash() != h
+        assert scene_hash.scene_hash() != h
 
 
 def test_reference_path():
     h = "ab" * 32
-    p = reference.reference_path("/cache", h, 64, 1)
+    p = scene_hash.reference_path("/cache", h, 64, 1)
     assert p == Path("/cache") / f"ref_{h[:20]}_s64_b1.exr"
     with pytest.raises(ValueError):
-        reference.reference_path("/cache", "scene.blend", 64, 1)
+        scene_hash.reference_path("/cache", "scene.blend", 64, 1)
 
 
 def _tool():

@@ -103,7 +103,7 @@ def test_vpls_and_receivers_outside_the_grid_are_harmless():
     inj = injection.inject(g, far[:2], nrm[:2], flux[:2], visibility=vis)
     assert np.all(np.isfinite(inj)) and np.abs(inj).max() == 0.0  # left the volume
     values = injection.inject(g, np.array([[0.5, 0.5, 0.5]]), nrm[:1], flux[:1], visibility=vis)
-    e = lookup.irradiance(g, values, far, nrm, angular="m1", visibility=vis)
+    e = lookup.irradiance(g, values, far, nrm, angular="dom", visibility=vis)
     assert np.all(np.isfinite(e))
     assert np.all(e[:2] == 0.0)
 
@@ -166,7 +166,7 @@ def test_light_in_a_crate_leaves_the_room_dark():
 
     def floor(sc):
         r = engine.Engine().update(sc)
-        e = lookup.irradiance(r.grid, r.values, p, nrm, angular="m1", visibility=r.visibility)
+        e = lookup.irradiance(r.grid, r.values, p, nrm, angular="dom", visibility=r.visibility)
         assert np.all(np.isfinite(e))
         return e.mean()
 

@@ -13,7 +13,7 @@ convergence, 16^3 cascades picked per view); ``angular`` in the output names the
 
 ``--sweep`` adds the scaling sweep of bench_sweep.py (grids 16^3-64^3, 1-4 cascades, RSM
 64^2-512^2, 1k-1M triangles, 1-16 lights, numpy and gl backends, cost-growth exponents, a
-roofline of the dense propagation step of each transport model (dom, m1, sh) and the 1280x720
+roofline of the dense propagation step of each transport model (dom, sh) and the 1280x720
 lookup) under the key "sweep";
 ``--sweep-quick`` a tiny version of it (for tests); ``--sweep-only`` skips the Cornell box
 figures. See docs/benchmarks.md.

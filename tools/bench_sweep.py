@@ -9,26 +9,24 @@ What is measured, and why this way:
 * **Engine sweep** (:func:`engine_sweep`): one factor at a time around a base configuration,
   ``Engine.update`` + ``deferred.render`` on the demo Cornell box, for each backend, with the
   default transport model (``GISettings.angular``, "dom"); the medians of ``Stats.ms`` per
-  stage. Propagation runs a *fixed, small* number of steps (``settings.iterations``) instead
-  of running to convergence (dom and m1 run up to 3 R steps: minutes per update on 64^3
-  here), so the figures are per-step costs, not the cost of a converged update;
-  ``propagation_per_step_ms`` divides by the steps actually run (for dom it includes the
-  once-per-propagation unfold and fold, spread over those steps).
+  stage. dom solves the limit of infinitely many steps in one sweep per propagation
+  (``settings.iterations`` applies to sh only), so its figures are the cost of a converged
+  update.
   Triangle counts are scaled by subdividing every demo triangle into k^2 (same scene, same
   lighting, only the cost changes); lights by replicating the demo spot light.
 * **Propagation microbenchmark** (:func:`propagation_sweep`): one step on a *dense* grid (every
-  cell lit, with visibility; dom also without), per backend and angular model: ``step`` for m1
-  and sh, one step of ``propagation._propagate_ordinates``' loop for dom (:func:`dom_step`:
-  ``ordinates.advance``, the shell, the accumulation and the flux sum). The engine's early
-  steps are sparse (m1 and dom skip the cells without light), so this is the worst case and
+  cell lit, with visibility; dom also without), per backend and angular model: ``kd10.step``
+  for sh, one step of ``ordinates.propagate_steps``' loop for dom (:func:`dom_step`:
+  ``ordinates.advance``, the shell, the accumulation and the flux sum). The engine's
+  propagation is sparse (dom skips the cells without light), so this is the worst case and
   the one the roofline applies to.
 * **Machine limits** (:func:`machine_limits`): float32 GFLOP/s of a large numpy matmul and
   memory bandwidth of a large array copy, measured in the same run.
 * **Roofline** (:func:`roofline`): FLOPs and bytes of one propagation step counted from the
   algorithm (:func:`step_counts`), time at the machine's limit vs time measured.
 * **Lookup** (:func:`lookup_bench`): ``backend.irradiance`` on a 1280x720 G-buffer's worth of
-  points (921,600) in the grid, per backend and angular model (dom and m1 read the cell the
-  same way, as its maximum-entropy lobe).
+  points (921,600) in the grid, per backend and angular model (dom: bands 0-2, sh: KD10's
+  clamped lobe with its gradient damping).
 * **Exponents** (:func:`exponents`): least-squares slope of log(time) vs log(size) per series.
 
 A combination that cannot run (no GL context, an exception) is recorded with its reason
@@ -46,13 +44,13 @@ import numpy as np
 
 from lpv_core import engine, propagation, sh
 from lpv_core.grid import Grid
-from lpv_core.propagation import ordinates
+from lpv_core.propagation import kd10, ordinates, quadrature
 from lpv_core.render import deferred
 from lpv_core.scene import GISettings, demo, make_scene
 
 BACKENDS = ("numpy", "gl")
-# Transport models swept, the default first ("dom"); m1 and sh for comparison.
-ANGULARS = ("dom", "m1", "sh")
+# Transport models swept, the default first ("dom"); sh (KD10) for comparison.
+ANGULARS = ("dom", "sh")
 # The model the engine sweep runs: the add-on's default.
 ENGINE_ANGULAR = GISettings().angular
 
@@ -67,7 +65,6 @@ FULL = {
              "lights": 1},
     "iterations": 2,  # fixed propagation steps per update (not convergence, see module doc)
     "angular": ENGINE_ANGULAR,
-    "direction_groups": 1,
     "render": (128, 96),
     "shadow_resolution": 512,
     "repeat": 3,
@@ -88,7 +85,6 @@ QUICK = {
              "lights": 1},
     "iterations": 1,
     "angular": ENGINE_ANGULAR,
-    "direction_groups": 1,
     "render": (32, 24),
     "shadow_resolution": 128,
     "repeat": 3,
@@ -172,9 +168,9 @@ def _engine_case(eng: engine.Engine, scene, repeat: int) -> dict:
             continue
         for k, v in stats.ms.items():
             samples.setdefault(k, []).append(v)
-        # steps per update ("sweep" entries, automatic iterations, count none)
-        steps.append(int(sum(n for n in stats.info.get("iterations") or [0]
-                             if isinstance(n, int))))
+        # steps per update: a "sweep" entry (dom: one pass to convergence) counts as one
+        steps.append(int(sum(1 if n == "sweep" else n for n in stats.info.get("iterations")
+                             or [0] if n == "sweep" or isinstance(n, int))))
     med = {k: statistics.median(v) for k, v in samples.items()}
     n_steps = statistics.median(steps) if steps else 0
     if n_steps and "propagation" in med:
@@ -212,7 +208,6 @@ def engine_sweep(cfg: dict, backends=BACKENDS) -> dict:
                                       cascades=p["cascades"], rsm_resolution=p["rsm_resolution"],
                                       iterations=cfg["iterations"],
                                       angular=cfg.get("angular", ENGINE_ANGULAR),
-                                      direction_groups=cfg["direction_groups"],
                                       shadow_resolution=cfg["shadow_resolution"], backend=name)
                 try:
                     scene = sweep_scene(p["triangles"], p["lights"], settings, cfg["render"])
@@ -255,19 +250,14 @@ def machine_limits(matmul_n: int = 2048, copy_mb: int = 256, repeat: int = 5) ->
             "repeat": repeat}
 
 
-def step_counts(resolution: int, angular: str = "m1", visibility: bool = True) -> dict:
+def step_counts(resolution: int, angular: str = "dom", visibility: bool = True) -> dict:
     """FLOPs and bytes of one propagation step on a dense (all cells lit) R^3 grid.
 
-    Counted from the algorithm (propagation.step / step_m1 / ordinates.advance), per cell and
-    colour (row):
+    Counted from the algorithm (kd10.step / ordinates.advance), per cell and colour (row):
 
-    * m1: moments (~30), kappa (~6), <d, w_q> for 64 bundle directions (2 x 3 x 64), kappa x
-      that and exp (2 x 64; exp counted as one FLOP), normalisation (64 + 2), bundle -> 27
-      neighbours x 4 SH matmul (2 x 64 x 108), scale (108), gather with visibility
-      (108 multiplies + 108 adds) and the visibility products per offset (~54 per cell);
     * sh: 30 face evaluations (2 x 4 x 30), clamp / sum / rescale (~95), six 5 -> 4
       re-projections (6 x 2 x 5 x 4), visibility (24) and the shift-adds (24).
-    * dom: one step of propagation._propagate_ordinates' loop (:func:`dom_step`) on the padded
+    * dom: one step of ordinates.propagate_steps' loop (:func:`dom_step`) on the padded
       flat layout ((R + 2)^3 cells of q = 64 directions x 3 colours): the advection, 64
       directions x 8 neighbour offsets x (1 multiply by weight x transmittance + 1 add) over
       the flat range of cells holding light (for a dense grid (R - 1)((R+2)^2 + (R+2) + 1) + 1
@@ -279,7 +269,7 @@ def step_counts(resolution: int, angular: str = "m1", visibility: bool = True) -
       Per cell: 3 x (1024 x live / R^3 + 192 x (R + 2)^3 / R^3), 4.7k at 16^3, 4.2k at 32^3
       (3.6k as R grows: 3 x (1024 + 192)).
 
-    ``bytes`` is the compulsory traffic: m1 and sh read the grid (48 B/cell) and visibility
+    ``bytes`` is the compulsory traffic: sh reads the grid (48 B/cell) and visibility
     (24 B/cell) and write the result (48 B/cell); dom reads the flux (q x 3 x 4 = 768 B/cell)
     and the visibility (24 B/cell), writes the arrivals (768 B/cell) and reads and writes the
     accumulated flux (2 x 768 B/cell), since its timed step includes the accumulation.
@@ -293,19 +283,9 @@ def step_counts(resolution: int, angular: str = "m1", visibility: bool = True) -
     """
     cells = resolution**3
     rows = 3 * cells
-    q, k = propagation.M1_DIRECTIONS, len(propagation.OFFSETS)
     vis = 1 if visibility else 0
     extra = {}
-    if angular == "m1":
-        per_row = 30 + 6 + 2 * 3 * q + 2 * q + q + 2 + 2 * q * 4 * k + 4 * k + 4 * k * (1 + vis)
-        flops = rows * per_row + cells * 54 * vis
-        # moments (16 in, ~36 out), bundles (q floats: dot, scale, exp, sum: 4 passes r+w),
-        # arrivals (4k: matmul out, scale, scatter, transpose: r+w each), gather (k offsets:
-        # slice read, visibility product, += into out: ~6 x 16 B).
-        per_row_bytes = 16 + 36 + 4 * q * 4 * 2 + 4 * (4 * k) * 4 * 2 + k * 6 * 16
-        materialised = rows * per_row_bytes + cells * k * 4 * 3 * vis
-        compulsory = cells * (48 + 24 * vis + 48)
-    elif angular == "sh":
+    if angular == "sh":
         per_row = 2 * 4 * 30 + 95 + 6 * 2 * 5 * 4 + 24 * vis + 24
         flops = rows * per_row
         # face flux (30 floats: matmul out, clamp, sum, scale: r+w), six re-projections
@@ -386,7 +366,7 @@ def _dense_dom(r: int, rng) -> np.ndarray:
 
 
 def dom_step(cur: np.ndarray, acc: np.ndarray, table: list, r: int) -> tuple[np.ndarray, float]:
-    """One step of propagation._propagate_ordinates' loop on the padded flat layout: advance
+    """One step of ordinates.propagate_steps' loop on the padded flat layout: advance
     every direction one cell (ordinates.advance), empty the shell (what left the grid; no
     outflow kept), accumulate, and sum the moved flux in float64 (the early-stop test).
     Returns the new state and the moved flux (ordinates.loop_step, the loop's own step)."""
@@ -403,10 +383,10 @@ def propagation_sweep(sizes, steps: int, repeat: int, limits: dict,
                       angulars=ANGULARS, backends=BACKENDS) -> list[dict]:
     """Median ms per step of ``steps`` fixed steps on dense grids, with the roofline of each.
 
-    numpy: ``propagation.step`` (m1, sh) or :func:`dom_step` (dom, on a dense random flux
+    numpy: ``kd10.step`` (sh) or :func:`dom_step` (dom, on a dense random flux
     state, every direction lit) called ``steps`` times; gl: ``GLBackend.propagate`` with
-    ``min_fraction=0`` and no readback (the grid stays on the GPU, as between steps). A gl
-    dom propagation unfolds and folds once per call: its step is (time of ``steps`` steps -
+    ``min_fraction=0`` on light launched from surfaces (the engine's case). A gl
+    dom propagation launches, uploads and folds once per call: its step is (time of ``steps`` steps -
     time of 0 steps) / ``steps``, the fixed part recorded as ``unfold_fold_ms``.
     """
     rng = np.random.default_rng(1)
@@ -426,7 +406,7 @@ def propagation_sweep(sizes, steps: int, repeat: int, limits: dict,
                     if name == "numpy" and angular == "dom":
                         state = _dense_dom(r, rng)
                         table = ordinates.factors(
-                            r, propagation._offset_visibilities(step_vis))
+                            r, quadrature.offset_visibilities(step_vis))
                         acc = np.zeros_like(state)
 
                         def run(v=state, t=table, a=acc, rr=r):
@@ -434,19 +414,21 @@ def propagation_sweep(sizes, steps: int, repeat: int, limits: dict,
                             for _ in range(steps):
                                 cur, _moved = dom_step(cur, a, t, rr)
                     elif name == "numpy":
-                        def run(v=values, a=angular, vv=step_vis):
+                        def run(v=values, vv=step_vis):
                             cur = v
                             for _ in range(steps):
-                                cur = propagation.step(cur, vv, angular=a)
+                                cur = kd10.step(cur, vv)
                     else:
                         if gl is None:
                             row["skipped"] = gl_reason
                             continue
-                        on_gpu = gl.upload(values)
+                        if angular != "dom":
+                            row["skipped"] = "the GL backend propagates dom only"
+                            continue
 
-                        def run(g=on_gpu, a=angular, vv=step_vis, n=steps):
-                            gl.propagate(g, n, min_fraction=0.0, visibility=vv,
-                                         angular=a, occlude_first_step=True, readback=False)
+                        def run(g=values, vv=step_vis, n=steps):
+                            gl.propagate(g, n, min_fraction=0.0, visibility=vv, angular="dom",
+                                         occlude_first_step=True, launch=True)
                     fallbacks0 = getattr(gl, "fallbacks", 0)
                     sec = _median_s(run, repeat)
                     if name == "gl" and angular == "dom":
@@ -458,10 +440,8 @@ def propagation_sweep(sizes, steps: int, repeat: int, limits: dict,
                             raise RuntimeError("steps not measurable over the unfold/fold "
                                                f"({row['propagate_ms']:.1f} ms vs "
                                                f"{row['unfold_fold_ms']:.1f} ms)")
-                    if name == "gl":
-                        on_gpu.release()
-                        if gl.fallbacks > fallbacks0:
-                            row["numpy_fallbacks"] = gl.fallbacks - fallbacks0
+                    if name == "gl" and gl.fallbacks > fallbacks0:
+                        row["numpy_fallbacks"] = gl.fallbacks - fallbacks0
                     row["step_ms"] = sec * 1000.0 / steps
                     row["roofline"] = roofline(row["step_ms"], counts, limits)
                 except Exception as exc:  # noqa: BLE001 - recorded, the sweep goes on
@@ -474,7 +454,7 @@ def lookup_bench(points: int, resolution: int, repeat: int, angulars=ANGULARS,
     """Median ms of ``backend.irradiance`` on ``points`` receivers (a 1280x720 G-buffer is
     921,600), on a propagated grid with occlusion visibility, as deferred.render calls it:
     with the coefficients the model's propagation gives (dom: 9, bands 0-2, its band 2
-    small; m1 and sh: 4)."""
+    small; sh: 4)."""
     rng = np.random.default_rng(2)
     g = Grid((-1.0, -1.0, 0.0), 2.0 / resolution, resolution)
     values4, vis = _dense_grid(resolution, rng)
@@ -594,11 +574,10 @@ def run_sweep(quick: bool = False, backends=BACKENDS) -> dict:
         "config": {k: (list(v) if isinstance(v, tuple) else v) for k, v in cfg.items()},
         "notes": [
             (f"engine: angular = {cfg.get('angular', ENGINE_ANGULAR)!r} (the default); "
-             f"propagation runs a fixed {cfg['iterations']} step(s) per update "
-             f"(settings.iterations), not to convergence; direction_groups = "
-             f"{cfg['direction_groups']}: figures are per-step costs"
-             + (" (dom: including its once-per-propagation unfold and fold)"
-                if cfg.get("angular", ENGINE_ANGULAR) == "dom" else "")),
+             + ("dom solves each propagation to convergence in one sweep"
+                if cfg.get("angular", ENGINE_ANGULAR) == "dom" else
+                f"propagation runs a fixed {cfg['iterations']} step(s) per update "
+                "(settings.iterations), not to convergence: figures are per-step costs")),
             "one factor varied at a time around config.base",
             "triangle counts: demo Cornell box triangles each subdivided into k^2",
             ("numpy_fallbacks > 0 on a gl case: that many backend calls ran the numpy code "

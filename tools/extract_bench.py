@@ -117,7 +117,7 @@ def main(argv: list[str] | None = None) -> dict:
     os.environ.setdefault("BLENDER_USER_RESOURCES", tempfile.mkdtemp(prefix="lpv_bench_"))
     import bpy
 
-    from lpv_addon import extract
+    from lpv_addon.scene_io import extract
 
     t0 = time.perf_counter()
     big, insts = build_scene(bpy, args.triangles, args.instances, args.instance_triangles,

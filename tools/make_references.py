@@ -9,7 +9,7 @@ writes DIR/<scene>.blend and DIR/<scene>_ref_b<B>.exr per scene (progress on std
 in a cache folder and builds/renders only on a miss. The work runs in a SUBPROCESS of the
 Python interpreter (default: sys.executable, the venv's), so the caller's bpy state (its open
 file, scenes, settings) is never touched and a caller without bpy works too. The key of the
-cache is the scene *content* hash (lpv_addon.reference.scene_hash) plus samples and bounces,
+cache is the scene *content* hash (tools/scene_hash.py) plus samples and bounces,
 computed in the child after building; a small manifest (references.json) maps (scene,
 resolution, samples, bounces, source digest of the scene/render code, bpy version) to that
 hash, so a warm cache answers without starting a child at all.
@@ -32,7 +32,8 @@ ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_SCENES = ("cornell_spot", "cornell_point", "cornell_sun", "point_room", "sun_yard")
 DEFAULT_SAMPLES = 1024
 MANIFEST = "references.json"
-_SOURCES = ("lpv_addon/scenes.py", "lpv_addon/reference.py", "tools/make_references.py")
+_SOURCES = ("tools/scenes.py", "lpv_addon/scene_io/demo.py", "lpv_addon/render/cycles.py",
+            "tools/scene_hash.py", "tools/make_references.py")
 
 
 def _log(msg: str) -> None:
@@ -58,10 +59,10 @@ def _import_bpy_side():
     )
     if str(ROOT) not in sys.path:
         sys.path.insert(0, str(ROOT))
-    from lpv_addon import reference
-    from tools import scenes
+    from lpv_addon.render import cycles
+    from tools import scene_hash, scenes
 
-    return scenes, reference
+    return scenes, cycles, scene_hash
 
 
 def make(
@@ -69,7 +70,7 @@ def make(
     resolution: tuple[int, int] | None,
 ) -> list[dict]:
     """Build, save and render each named scene into ``out`` (the CLI's plain mode)."""
-    scenes, reference = _import_bpy_side()
+    scenes, cycles, _ = _import_bpy_side()
     out.mkdir(parents=True, exist_ok=True)
     results = []
     for i, name in enumerate(names, 1):
@@ -79,7 +80,7 @@ def make(
         w, h = facts["resolution"]
         _log(f"[{i}/{len(names)}] {name}: rendering {w}x{h}, {samples} samples, "
              f"{bounces} diffuse bounce(s)")
-        info = reference.render_cycles_passes(
+        info = cycles.render_cycles_passes(
             out / f"{name}_ref_b{bounces}.exr", samples=samples, diffuse_bounces=bounces
         )
         _log(f"[{i}/{len(names)}] {name}: {info['seconds']:.1f} s -> {info['path']}")
@@ -91,14 +92,14 @@ def _cached_one(
     out: Path, name: str, samples: int, bounces: int, resolution: tuple[int, int] | None
 ) -> dict:
     """Child side of ensure_reference: build, hash, save and render only what is missing."""
-    scenes, reference = _import_bpy_side()
+    scenes, cycles, scene_hash = _import_bpy_side()
     import bpy
 
     out.mkdir(parents=True, exist_ok=True)
     kw = {} if resolution is None else {"resolution": resolution}
     facts = scenes.build(name, **kw)
-    digest = reference.scene_hash()
-    exr = reference.reference_path(out, digest, samples, bounces)
+    digest = scene_hash.scene_hash()
+    exr = scene_hash.reference_path(out, digest, samples, bounces)
     blend = out / f"{name}_{digest[:20]}.blend"
     if not blend.is_file():
         tmp = blend.with_name(f".{blend.stem}.{os.getpid()}.{uuid.uuid4().hex[:8]}.blend")
@@ -109,8 +110,8 @@ def _cached_one(
         _log(f"{name}: cached reference {exr.name}")
     else:
         _log(f"{name}: rendering {facts['resolution']}, {samples} samples, b{bounces}")
-        seconds = reference.render_cycles_passes(exr, samples=samples,
-                                                 diffuse_bounces=bounces)["seconds"]
+        seconds = cycles.render_cycles_passes(exr, samples=samples,
+                                              diffuse_bounces=bounces)["seconds"]
         _log(f"{name}: {seconds:.1f} s -> {exr}")
     return {"scene": name, "hash": digest, "blend": str(blend), "exr": str(exr),
             "seconds": seconds, "resolution": list(facts["resolution"])}
@@ -222,7 +223,7 @@ def main(argv: list[str] | None = None) -> int:
         p.error("no scenes given")
     if args.samples < 1 or args.bounces < 0:
         p.error("need --samples >= 1 and --bounces >= 0")
-    scenes, _ = _import_bpy_side()
+    scenes, _, _ = _import_bpy_side()
     known = set(scenes.SCENES) | set(scenes.BUILDERS)
     unknown = [n for n in names if n not in known]
     if unknown:

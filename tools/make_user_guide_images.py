@@ -3,7 +3,7 @@
     .venv/bin/python tools/make_user_guide_images.py [--out docs/images] [--size 480x360]
 
 What it makes (all from the real add-on, registered from this repository):
-- overlay pictures: Blender's own ``gpu`` module draws the LPV overlay (lpv_addon/overlay.py)
+- overlay pictures: Blender's own ``gpu`` module draws the LPV overlay (lpv_addon/viewport/overlay.py)
   of the Cornell box into an offscreen buffer, exactly the code the 3D viewport runs; the
   engine runs in the worker process, as in the viewport. The "viewport shading" underneath is
   the direct light of our deferred renderer (the viewport's own EEVEE/Workbench drawing needs a
@@ -35,7 +35,9 @@ import numpy as np
 from mathutils import Matrix
 
 import lpv_addon
-from lpv_addon import live, operators, overlay, ui
+from lpv_addon import operators, ui
+from lpv_addon.render import compare
+from lpv_addon.viewport import live, overlay
 from tools import scenes
 
 GUIDE = ROOT / "docs" / "user-guide.md"
@@ -129,7 +131,7 @@ def make_pictures(out: Path, w: int, h: int) -> dict:
     scene, taxi = build_scene(w, h)
     warm_up(scene)
     live.refresh(scene, wait=True)
-    passes, _ = live.render_passes(scene, (w, h))
+    passes, _ = compare.render_passes(scene, (w, h))
     base = passes["Diffuse Direct"] * passes["Diffuse Color"]
     white = float(np.percentile(base[base > 0], 98)) if (base > 0).any() else 1.0
     pics = {}

@@ -7,7 +7,7 @@
 For every scene (tools.scenes) it
 1. renders a high-sample Cycles reference (one diffuse bounce; four for the multi-bounce rows)
    through tools/make_references.ensure_reference, cached on disk by scene content hash;
-2. opens the reference's .blend, extracts the core scene (lpv_addon.extract) and renders it
+2. opens the reference's .blend, extracts the core scene (lpv_addon.scene_io.extract) and renders it
    with the in-process core engine over a sweep of GI settings. The sweep reads the fields of
    GISettings at run time: known fields get known values, a new bool/int/float field is swept
    around its default, a new string field over the tuple constant of lpv_core that lists its
@@ -42,6 +42,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from lpv_core.render.error import indirect_term, relative_rmse
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -116,7 +118,6 @@ KNOWN_VALUES = {
     "bounces": (1, 4),
     "shadow_resolution": (512, 1024, 2048),
     "backend": ("numpy", "gl"),
-    "direction_groups": (1, 6),
     "antialias": (1, 2, 4),  # samples per pixel side of the render (deferred.render)
 }
 # Not quality settings: left at their defaults.
@@ -127,7 +128,7 @@ MULTI_BOUNCES = 4
 # A settings change must move the indirect error by this much to count in the greedy combination.
 GREEDY_MIN_GAIN = 0.01
 SMOKE_BASE = {"grid_resolution": 8, "rsm_resolution": 32, "shadow_resolution": 128,
-              "iterations": 4, "direction_groups": 1}
+              "iterations": 4}
 QUICK_BASE = {"rsm_resolution": 128, "shadow_resolution": 512}
 
 
@@ -235,22 +236,8 @@ def grid_iteration_pairs(base, mode: str = "full") -> list:
 # ---------------------------------------------------------------------------------------------
 
 
-def indirect_term(passes: dict) -> np.ndarray:
-    """Diffuse Indirect x Diffuse Color, (H, W, 3) float64."""
-    return (passes["Diffuse Indirect"][..., :3].astype(np.float64)
-            * passes["Diffuse Color"][..., :3].astype(np.float64))
-
-
 def combined_term(passes: dict) -> np.ndarray:
     return passes["Combined"][..., :3].astype(np.float64)
-
-
-def rel_rmse(test: np.ndarray, ref: np.ndarray) -> float:
-    """sqrt(mean((test - ref)^2)) / mean(ref) (NaN where the reference is black)."""
-    m = float(np.mean(ref))
-    if not m > 0:
-        return math.nan
-    return float(np.sqrt(np.mean((np.asarray(test, np.float64) - ref) ** 2)) / m)
 
 
 def hdr_flip(test: np.ndarray, ref: np.ndarray) -> float:
@@ -267,8 +254,8 @@ def hdr_flip(test: np.ndarray, ref: np.ndarray) -> float:
 
 def errors(test: dict, ref: dict, flip: bool = True) -> dict:
     return {
-        "indirect": rel_rmse(indirect_term(test), indirect_term(ref)),
-        "combined": rel_rmse(combined_term(test), combined_term(ref)),
+        "indirect": relative_rmse(indirect_term(test), indirect_term(ref)),
+        "combined": relative_rmse(combined_term(test), combined_term(ref)),
         "flip": hdr_flip(combined_term(test), combined_term(ref)) if flip else math.nan,
         "indirect_mean_ratio": float(indirect_term(test).mean()
                                      / max(indirect_term(ref).mean(), 1e-30)),
@@ -467,21 +454,21 @@ def _asked_iterations(settings: dict) -> float:
         return float(its)
     g = settings.get("grid_resolution", 16)
     try:
-        return float(core.engine.auto_iterations(g, settings.get("angular", "sh")))
+        return float(core.engine.auto_iterations(g, settings.get("angular", "dom")))
     except TypeError:  # pragma: no cover - an older auto_iterations(resolution)
         return float(core.engine.auto_iterations(g))
 
 
 def predicted_seconds(settings, runs: list[dict]) -> float | None:
     """Time of ``settings`` predicted from measured runs with the same angular model (and
-    direction groups): the closest grid resolution's run, its propagation scaled by cells x
+    cascades): the closest grid resolution's run, its propagation scaled by cells x
     asked iterations (early stopping scales alike), the rest by the grid resolution."""
     g = getattr(settings, "grid_resolution", None)
     if not runs or not g:
         return None
     new = dataclasses.asdict(settings)
     same = [r for r in runs if all(r["settings"].get(k) == new.get(k)
-                                   for k in ("angular", "direction_groups", "cascades"))]
+                                   for k in ("angular", "cascades"))]
     same = same or runs
     g_ref = min({r["settings"]["grid_resolution"] for r in same}, key=lambda v: abs(v - g))
     preds = []
@@ -504,7 +491,7 @@ def _read_exr(path):
 def cycles_sweep(scene, tag: str, bounces: int, samples: tuple, prof: dict, cache: Path,
                  fresh: bool) -> list[dict]:
     """Render the open scene with Cycles at each sample count; cached per scene hash (tag)."""
-    from lpv_addon import reference
+    from lpv_addon.render import cycles
 
     folder = cache / "cycles_sweep"
     folder.mkdir(parents=True, exist_ok=True)
@@ -518,14 +505,14 @@ def cycles_sweep(scene, tag: str, bounces: int, samples: tuple, prof: dict, cach
             meta = json.loads(meta_path.read_text())
         if meta is None:
             if not warmed:  # the first render of a process loads kernels: not timed
-                reference.render_cycles_passes(folder / f".warm_{os.getpid()}.exr", samples=1,
+                cycles.render_cycles_passes(folder / f".warm_{os.getpid()}.exr", samples=1,
                                                diffuse_bounces=bounces, scene=scene, seed=99)
                 (folder / f".warm_{os.getpid()}.exr").unlink(missing_ok=True)
                 warmed = True
             times = []
             reps = prof["cycles_repeats"]
             for rep in range(reps):
-                info = reference.render_cycles_passes(exr_path, samples=n,
+                info = cycles.render_cycles_passes(exr_path, samples=n,
                                                       diffuse_bounces=bounces, scene=scene,
                                                       seed=1000 + n)
                 times.append(info["seconds"])
@@ -556,7 +543,7 @@ def run_scene(name: str, prof: dict, mode: str, cache: Path, out: Path, fresh: b
               resolution) -> dict:
     bpy = _import_bpy()
     import lpv_core as core
-    from lpv_addon.extract import extract_scene
+    from lpv_addon.scene_io.extract import extract_scene
 
     res = tuple(resolution or prof["resolution"])
     ref_samples = prof["ref_samples_scene"].get(name, prof["ref_samples"])
@@ -861,9 +848,9 @@ def plot_images(name: str, ref: dict, lpv: dict, lpv_row: dict, cyc: dict, cyc_r
         panels = [
             (_tonemap(r, white), f"Cycles reference\n{label}"),
             (_tonemap(a, white), (f"LPV {lpv_row['time_s']:.2f} s, rel. RMSE "
-                                 f"{rel_rmse(a, r):.2f}")),
+                                 f"{relative_rmse(a, r):.2f}")),
             (_tonemap(c, white), (f"Cycles {cyc_row['samples']} spp {cyc_row['time_s']:.2f} s, "
-                                 f"rel. RMSE {rel_rmse(c, r):.2f}")),
+                                 f"rel. RMSE {relative_rmse(c, r):.2f}")),
         ]
         for k, (img, title) in enumerate(panels):
             axs[row, k].imshow(img, interpolation="nearest")
@@ -1114,11 +1101,11 @@ def write_readme(data: dict, out: Path) -> Path:
         "",
         ("- Reference: Cycles (CPU) with many samples per pixel, diffuse bounces 1 (4 for the "
         "multi-bounce rows), no denoising/clamping, 1-pixel box filter "
-        "(lpv_addon/reference.py), cached by scene content hash "
+        "(lpv_addon/render/cycles.py), cached by scene content hash "
         "(tools/make_references.py). Its own noise is estimated from the Cycles sweep "
         "(column *reference noise*); errors below it are not resolved."),
         ("- LPV: the scene's .blend opened in this process, extracted with "
-         "lpv_addon.extract, rendered by lpv_core (Engine.update + deferred.render). One "
+         "lpv_addon.scene_io.extract, rendered by lpv_core (Engine.update + deferred.render). One "
          "Engine per scene, as in the add-on (GL context, GL backend and the automatic "
          "backend choice stay warm; an untimed warm-up run first), its incremental-update "
          "cache cleared before every run so that every run computes everything. Time = "

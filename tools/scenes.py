@@ -1,4 +1,5 @@
-"""The team's test and demo scenes, built with bpy data calls (no operators in loops).
+"""The team's test scenes, built with bpy data calls (no operators in loops), on the helpers
+of the shipped demo (lpv_addon/scene_io/demo.py: the Cornell box and its conventions).
 
 Every builder by default starts a fresh file with ``bpy.ops.wm.read_homefile(use_empty=True)``
 (add-ons stay registered) and builds into its one scene, which is then the context scene;
@@ -20,11 +21,27 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import bpy
-from mathutils import Vector
+
+from lpv_addon.scene_io.demo import (
+    GREEN,
+    RED,
+    WHITE,
+    add_camera,
+    add_light,
+    add_mesh_object,
+    box_geometry,
+    cornell_box,
+    diffuse_material,
+    new_scene,
+    scene_facts,
+)
 
 __all__ = [
     "BUILDERS",
+    "GREEN",
+    "RED",
     "SCENES",
+    "WHITE",
     "build",
     "city",
     "cornell_box",
@@ -34,40 +51,6 @@ __all__ = [
     "sun_yard",
     "sunlit_room",
 ]
-
-Color = tuple[float, float, float]
-WHITE: Color = (0.73, 0.73, 0.73)
-RED: Color = (0.63, 0.065, 0.05)
-GREEN: Color = (0.14, 0.45, 0.091)
-
-# Face winding of an axis-aligned box with corners 0..7 (bit 0: x, bit 1: y, bit 2: z) laid
-# out as below; every quad is counter-clockwise seen from outside (normal points out).
-# 0 (x0,y0,z0) 1 (x1,y0,z0) 2 (x1,y1,z0) 3 (x0,y1,z0), 4..7 the same at z1.
-_BOX_FACES = {
-    "-z": (0, 3, 2, 1),
-    "+z": (4, 5, 6, 7),
-    "-y": (0, 1, 5, 4),
-    "+y": (2, 3, 7, 6),
-    "-x": (3, 0, 4, 7),
-    "+x": (1, 2, 6, 5),
-}
-
-
-def _box_verts(lo: Sequence[float], hi: Sequence[float]) -> list[tuple[float, float, float]]:
-    (x0, y0, z0), (x1, y1, z1) = lo, hi
-    return [
-        (x0, y0, z0), (x1, y0, z0), (x1, y1, z0), (x0, y1, z0),
-        (x0, y0, z1), (x1, y0, z1), (x1, y1, z1), (x0, y1, z1),
-    ]
-
-
-def _box(
-    lo: Sequence[float], hi: Sequence[float], faces: Sequence[str] = tuple(_BOX_FACES),
-    inward: bool = False,
-) -> tuple[list, list]:
-    """Vertices and quads of a box (a subset of its faces), normals out or in."""
-    quads = [_BOX_FACES[f][::-1] if inward else _BOX_FACES[f] for f in faces]
-    return _box_verts(lo, hi), quads
 
 
 def _merge(*parts: tuple[list, list]) -> tuple[list, list]:
@@ -80,256 +63,58 @@ def _merge(*parts: tuple[list, list]) -> tuple[list, list]:
     return verts, faces
 
 
-def _material(name: str, color: Color, shader: str) -> bpy.types.Material:
-    """A purely diffuse material: Diffuse BSDF (roughness 0: Lambert) or zero-specular
-    Principled BSDF."""
-    mat = bpy.data.materials.new(name)
-    mat.diffuse_color = (*color, 1.0)  # solid-mode viewport colour
-    tree = mat.node_tree
-    if tree is None:  # pragma: no cover - Blender < 5 needs nodes switched on
-        mat.use_nodes = True
-        tree = mat.node_tree
-    tree.nodes.clear()
-    out = tree.nodes.new("ShaderNodeOutputMaterial")
-    out.location = (300, 0)
-    if shader == "DIFFUSE":
-        bsdf = tree.nodes.new("ShaderNodeBsdfDiffuse")
-        bsdf.inputs["Color"].default_value = (*color, 1.0)
-        bsdf.inputs["Roughness"].default_value = 0.0
-    elif shader == "PRINCIPLED":
-        bsdf = tree.nodes.new("ShaderNodeBsdfPrincipled")
-        bsdf.inputs["Base Color"].default_value = (*color, 1.0)
-        bsdf.inputs["Roughness"].default_value = 1.0
-        bsdf.inputs["Metallic"].default_value = 0.0
-        bsdf.inputs["Specular IOR Level"].default_value = 0.0
-    else:
-        raise ValueError(f"shader must be 'DIFFUSE' or 'PRINCIPLED', not {shader!r}")
-    tree.links.new(bsdf.outputs[0], out.inputs["Surface"])
-    return mat
-
-
-def _mesh_object(
-    scene: bpy.types.Scene, name: str, geometry: tuple[list, list],
-    material: bpy.types.Material, location: Sequence[float] = (0, 0, 0),
-    rotation_z_deg: float = 0.0,
-) -> bpy.types.Object:
-    verts, faces = geometry
-    mesh = bpy.data.meshes.new(name)
-    mesh.from_pydata(verts, [], faces)
-    mesh.validate()
-    mesh.update()
-    mesh.materials.append(material)
-    ob = bpy.data.objects.new(name, mesh)
-    ob.location = location
-    ob.rotation_euler = (0.0, 0.0, math.radians(rotation_z_deg))
-    scene.collection.objects.link(ob)
-    return ob
-
-
-def _look_at(ob: bpy.types.Object, target: Sequence[float]) -> None:
-    direction = Vector(target) - Vector(ob.location)
-    ob.rotation_euler = direction.to_track_quat("-Z", "Y").to_euler()
-
-
-def _camera(
-    scene: bpy.types.Scene, location: Sequence[float], target: Sequence[float],
-    lens_mm: float, name: str = "Camera",
-) -> bpy.types.Object:
-    cam = bpy.data.cameras.new(name)
-    cam.type = "PERSP"
-    cam.sensor_fit = "HORIZONTAL"
-    cam.sensor_width = 36.0
-    cam.sensor_height = 24.0
-    cam.lens = lens_mm
-    cam.clip_start = 0.05
-    cam.clip_end = 200.0
-    ob = bpy.data.objects.new(name, cam)
-    ob.location = location
-    _look_at(ob, target)
-    scene.collection.objects.link(ob)
-    scene.camera = ob
-    return ob
-
-
-def _light(
-    scene: bpy.types.Scene, name: str, kind: str, energy: float,
-    location: Sequence[float], rotation_deg: Sequence[float] = (0, 0, 0), **settings,
-) -> bpy.types.Object:
-    light = bpy.data.lights.new(name, kind)
-    light.energy = energy
-    light.color = (1.0, 1.0, 1.0)
-    light.use_shadow = True
-    if kind == "SUN":
-        light.angle = 0.0
-    else:
-        light.shadow_soft_size = 0.0
-    for key, value in settings.items():
-        setattr(light, key, value)
-    ob = bpy.data.objects.new(name, light)
-    ob.location = location
-    ob.rotation_euler = tuple(math.radians(a) for a in rotation_deg)
-    ob.visible_camera = False  # no emitter in Combined: it holds diffuse light only
-    scene.collection.objects.link(ob)
-    return ob
-
-
-def _black_world() -> bpy.types.World:
-    world = bpy.data.worlds.new("LPV Black")
-    world.color = (0.0, 0.0, 0.0)
-    tree = world.node_tree
-    if tree is None:  # pragma: no cover - Blender < 5
-        world.use_nodes = True
-        tree = world.node_tree
-    bg = tree.nodes.get("Background")
-    if bg is not None:
-        bg.inputs["Color"].default_value = (0.0, 0.0, 0.0, 1.0)
-        bg.inputs["Strength"].default_value = 0.0
-    return world
-
-
-def _new_scene(name: str, resolution: Sequence[int], new_file: bool) -> bpy.types.Scene:
-    if new_file:
-        bpy.ops.wm.read_homefile(use_empty=True)
-        scene = bpy.context.scene
-        scene.name = name
-    else:
-        scene = bpy.data.scenes.new(name)
-        window = getattr(bpy.context, "window", None)
-        if window is not None:
-            window.scene = scene
-    scene.unit_settings.system = "METRIC"
-    scene.unit_settings.scale_length = 1.0
-    scene.world = _black_world()
-    r = scene.render
-    r.engine = "CYCLES"
-    scene.cycles.device = "CPU"
-    r.resolution_x, r.resolution_y = (int(v) for v in resolution)
-    r.resolution_percentage = 100
-    r.pixel_aspect_x = r.pixel_aspect_y = 1.0
-    scene.frame_set(1)
-    return scene
-
-
-def _facts(scene: bpy.types.Scene, lights: Sequence[bpy.types.Object]) -> dict:
-    return {
-        "scene": scene.name,
-        "camera": scene.camera.name,
-        "lights": [ob.name for ob in lights],
-        "objects": sorted(ob.name for ob in scene.objects if ob.type == "MESH"),
-        "resolution": (scene.render.resolution_x, scene.render.resolution_y),
-    }
-
-
-def cornell_box(
-    light: str = "SPOT", resolution: Sequence[int] = (128, 128), *, shader: str = "DIFFUSE",
-    new_file: bool = True,
-) -> dict:
-    """Cornell box 2 m wide/deep/high (x, y in [-1, 1], z in [0, 2]), open at the front (-y):
-    red left wall, green right wall, white floor/ceiling/back, a short and a tall white block;
-    camera at (0, -3.9, 1) looking in (+y).
-
-    light: SPOT (300 W at z 1.95 pointing down, 100 deg cone, blend 0.15), POINT (150 W at
-    z 1.6), AREA (0.5 m square, 100 W, z 1.98, facing down) or SUN (4 W/m^2 tilted 20 deg
-    towards the camera through a 1 m hole in the ceiling). Returns the scene's facts.
-    """
-    light = light.upper()
-    if light not in ("SPOT", "POINT", "SUN", "AREA"):
-        raise ValueError(f"light must be SPOT, POINT, SUN or AREA, not {light!r}")
-    scene = _new_scene(f"cornell_{light.lower()}", resolution, new_file)
-    white = _material("White", WHITE, shader)
-    red = _material("Red", RED, shader)
-    green = _material("Green", GREEN, shader)
-    lo, hi = (-1.0, -1.0, 0.0), (1.0, 1.0, 2.0)
-    _mesh_object(scene, "Floor", _box(lo, hi, ["-z"], inward=True), white)
-    _mesh_object(scene, "BackWall", _box(lo, hi, ["+y"], inward=True), white)
-    _mesh_object(scene, "LeftWall", _box(lo, hi, ["-x"], inward=True), red)
-    _mesh_object(scene, "RightWall", _box(lo, hi, ["+x"], inward=True), green)
-    if light == "SUN":
-        # Ceiling with a 1 m hole (x in [-0.5, 0.5], y in [-0.2, 0.8]): four quads facing down.
-        hx0, hx1, hy0, hy1 = -0.5, 0.5, -0.2, 0.8
-        z = 2.0
-        rects = [(-1, -1, 1, hy0), (-1, hy1, 1, 1), (-1, hy0, hx0, hy1), (hx1, hy0, 1, hy1)]
-        verts, faces = [], []
-        for x0, y0, x1, y1 in rects:
-            b = len(verts)
-            verts += [(x0, y0, z), (x1, y0, z), (x1, y1, z), (x0, y1, z)]
-            faces.append((b, b + 3, b + 2, b + 1))  # normal -z (into the box)
-        _mesh_object(scene, "Ceiling", (verts, faces), white)
-    else:
-        _mesh_object(scene, "Ceiling", _box(lo, hi, ["+z"], inward=True), white)
-    _mesh_object(
-        scene, "ShortBlock", _box((-0.3, -0.3, 0.0), (0.3, 0.3, 0.6)), white,
-        location=(0.33, -0.3, 0.0), rotation_z_deg=-17.0,
-    )
-    _mesh_object(
-        scene, "TallBlock", _box((-0.3, -0.3, 0.0), (0.3, 0.3, 1.2)), white,
-        location=(-0.35, 0.3, 0.0), rotation_z_deg=17.0,
-    )
-    if light == "SPOT":
-        lamp = _light(scene, "Spot", "SPOT", 300.0, (0.0, 0.0, 1.95),
-                      spot_size=math.radians(100.0), spot_blend=0.15)
-    elif light == "POINT":
-        lamp = _light(scene, "Point", "POINT", 150.0, (0.0, 0.0, 1.6))
-    elif light == "AREA":
-        lamp = _light(scene, "Area", "AREA", 100.0, (0.0, 0.0, 1.98), shape="SQUARE", size=0.5)
-    else:
-        lamp = _light(scene, "Sun", "SUN", 4.0, (0.0, 0.3, 4.0), rotation_deg=(-20.0, 0.0, 12.0))
-    _camera(scene, (0.0, -3.9, 1.0), (0.0, 0.0, 1.0), lens_mm=50.0)
-    return _facts(scene, [lamp])
-
-
 def point_room(resolution: Sequence[int] = (128, 128), *, shader: str = "DIFFUSE",
                new_file: bool = True) -> dict:
     """A closed 4 x 5 x 3 m room (x in [-2, 2], y in [-2.5, 2.5]) with a blue accent wall,
     a table, sofa, bookshelf and cabinet, lit by one 400 W point light near the ceiling;
     camera inside a corner. Returns the scene's facts."""
-    scene = _new_scene("point_room", resolution, new_file)
-    wall = _material("Wall", (0.75, 0.73, 0.70), shader)
-    accent = _material("Accent", (0.20, 0.35, 0.60), shader)
-    ceiling = _material("Ceiling", (0.80, 0.80, 0.80), shader)
-    floor = _material("Floor", (0.45, 0.30, 0.20), shader)
-    wood = _material("Wood", (0.55, 0.40, 0.25), shader)
-    fabric = _material("Fabric", (0.60, 0.15, 0.12), shader)
-    shelf_mat = _material("Shelf", (0.25, 0.50, 0.25), shader)
+    scene = new_scene("point_room", resolution, new_file)
+    wall = diffuse_material("Wall", (0.75, 0.73, 0.70), shader)
+    accent = diffuse_material("Accent", (0.20, 0.35, 0.60), shader)
+    ceiling = diffuse_material("Ceiling", (0.80, 0.80, 0.80), shader)
+    floor = diffuse_material("Floor", (0.45, 0.30, 0.20), shader)
+    wood = diffuse_material("Wood", (0.55, 0.40, 0.25), shader)
+    fabric = diffuse_material("Fabric", (0.60, 0.15, 0.12), shader)
+    shelf_mat = diffuse_material("Shelf", (0.25, 0.50, 0.25), shader)
     lo, hi = (-2.0, -2.5, 0.0), (2.0, 2.5, 3.0)
-    _mesh_object(scene, "Floor", _box(lo, hi, ["-z"], inward=True), floor)
-    _mesh_object(scene, "Ceiling", _box(lo, hi, ["+z"], inward=True), ceiling)
-    _mesh_object(scene, "Walls", _box(lo, hi, ["-x", "-y", "+x"], inward=True), wall)
-    _mesh_object(scene, "AccentWall", _box(lo, hi, ["+y"], inward=True), accent)
+    add_mesh_object(scene, "Floor", box_geometry(lo, hi, ["-z"], inward=True), floor)
+    add_mesh_object(scene, "Ceiling", box_geometry(lo, hi, ["+z"], inward=True), ceiling)
+    add_mesh_object(scene, "Walls", box_geometry(lo, hi, ["-x", "-y", "+x"], inward=True), wall)
+    add_mesh_object(scene, "AccentWall", box_geometry(lo, hi, ["+y"], inward=True), accent)
     legs = [
-        _box((x - 0.03, y - 0.03, 0.0), (x + 0.03, y + 0.03, 0.72))
+        box_geometry((x - 0.03, y - 0.03, 0.0), (x + 0.03, y + 0.03, 0.72))
         for x in (-0.55, 0.55) for y in (-0.35, 0.35)
     ]
-    table = _merge(_box((-0.6, -0.4, 0.72), (0.6, 0.4, 0.77)), *legs)
-    _mesh_object(scene, "Table", table, wood, location=(0.3, 0.4, 0.0), rotation_z_deg=10.0)
-    sofa = _merge(_box((-1.0, -0.45, 0.0), (1.0, 0.45, 0.45)),
-                  _box((-1.0, 0.25, 0.45), (1.0, 0.45, 0.95)))
-    _mesh_object(scene, "Sofa", sofa, fabric, location=(-0.2, 1.9, 0.0))
-    _mesh_object(scene, "Bookshelf", _box((-0.45, -0.175, 0.0), (0.45, 0.175, 2.0)), shelf_mat,
+    table = _merge(box_geometry((-0.6, -0.4, 0.72), (0.6, 0.4, 0.77)), *legs)
+    add_mesh_object(scene, "Table", table, wood, location=(0.3, 0.4, 0.0), rotation_z_deg=10.0)
+    sofa = _merge(box_geometry((-1.0, -0.45, 0.0), (1.0, 0.45, 0.45)),
+                  box_geometry((-1.0, 0.25, 0.45), (1.0, 0.45, 0.95)))
+    add_mesh_object(scene, "Sofa", sofa, fabric, location=(-0.2, 1.9, 0.0))
+    add_mesh_object(scene, "Bookshelf", box_geometry((-0.45, -0.175, 0.0), (0.45, 0.175, 2.0)), shelf_mat,
                  location=(-1.8, -0.5, 0.0), rotation_z_deg=90.0)
-    _mesh_object(scene, "Cabinet", _box((-0.4, -0.25, 0.0), (0.4, 0.25, 0.9)), wood,
+    add_mesh_object(scene, "Cabinet", box_geometry((-0.4, -0.25, 0.0), (0.4, 0.25, 0.9)), wood,
                  location=(1.7, 1.2, 0.0), rotation_z_deg=-90.0)
-    _mesh_object(scene, "Box", _box((-0.2, -0.2, 0.0), (0.2, 0.2, 0.4)), wall,
+    add_mesh_object(scene, "Box", box_geometry((-0.2, -0.2, 0.0), (0.2, 0.2, 0.4)), wall,
                  location=(1.0, -0.9, 0.0), rotation_z_deg=30.0)
-    lamp = _light(scene, "Point", "POINT", 400.0, (0.0, 0.3, 2.4))
-    _camera(scene, (1.7, -2.25, 1.6), (-0.6, 1.0, 0.7), lens_mm=20.0)
-    return _facts(scene, [lamp])
+    lamp = add_light(scene, "Point", "POINT", 400.0, (0.0, 0.3, 2.4))
+    add_camera(scene, (1.7, -2.25, 1.6), (-0.6, 1.0, 0.7), lens_mm=20.0)
+    return scene_facts(scene, [lamp])
 
 
 def sun_yard(resolution: Sequence[int] = (128, 128), *, shader: str = "DIFFUSE",
              new_file: bool = True) -> dict:
     """A 40 m ground plane with five coloured boxes, a 4 W/m^2 sun at 40 deg elevation
     (azimuth 30 deg), camera outside looking down at the group. Returns the scene's facts."""
-    scene = _new_scene("sun_yard", resolution, new_file)
-    ground = _material("Ground", (0.5, 0.5, 0.5), shader)
-    red = _material("Red", (0.7, 0.08, 0.06), shader)
-    white = _material("White", (0.8, 0.8, 0.8), shader)
-    green = _material("Green", (0.12, 0.5, 0.1), shader)
-    blue = _material("Blue", (0.1, 0.2, 0.65), shader)
-    yellow = _material("Yellow", (0.75, 0.65, 0.1), shader)
+    scene = new_scene("sun_yard", resolution, new_file)
+    ground = diffuse_material("Ground", (0.5, 0.5, 0.5), shader)
+    red = diffuse_material("Red", (0.7, 0.08, 0.06), shader)
+    white = diffuse_material("White", (0.8, 0.8, 0.8), shader)
+    green = diffuse_material("Green", (0.12, 0.5, 0.1), shader)
+    blue = diffuse_material("Blue", (0.1, 0.2, 0.65), shader)
+    yellow = diffuse_material("Yellow", (0.75, 0.65, 0.1), shader)
     plane = ([(-20.0, -20.0, 0.0), (20.0, -20.0, 0.0), (20.0, 20.0, 0.0), (-20.0, 20.0, 0.0)],
              [(0, 1, 2, 3)])
-    _mesh_object(scene, "Ground", plane, ground)
+    add_mesh_object(scene, "Ground", plane, ground)
     boxes = [
         ("RedBox", (2.0, 2.0, 2.0), (0.0, 0.0), 20.0, red),
         ("WhiteTower", (1.0, 1.0, 3.0), (2.6, 1.6), 0.0, white),
@@ -338,12 +123,12 @@ def sun_yard(resolution: Sequence[int] = (128, 128), *, shader: str = "DIFFUSE",
         ("YellowSlab", (1.6, 0.9, 0.4), (1.6, -2.0), -25.0, yellow),
     ]
     for name, (sx, sy, sz), (x, y), rot, mat in boxes:
-        _mesh_object(scene, name, _box((-sx / 2, -sy / 2, 0.0), (sx / 2, sy / 2, sz)), mat,
+        add_mesh_object(scene, name, box_geometry((-sx / 2, -sy / 2, 0.0), (sx / 2, sy / 2, sz)), mat,
                      location=(x, y, 0.0), rotation_z_deg=rot)
     # Local -Z rotated 50 deg about X travels 40 deg below the horizon, then turned 30 deg.
-    lamp = _light(scene, "Sun", "SUN", 4.0, (0.0, 0.0, 10.0), rotation_deg=(50.0, 0.0, 30.0))
-    _camera(scene, (8.5, -9.0, 5.5), (0.0, 0.3, 0.8), lens_mm=35.0)
-    return _facts(scene, [lamp])
+    lamp = add_light(scene, "Sun", "SUN", 4.0, (0.0, 0.0, 10.0), rotation_deg=(50.0, 0.0, 30.0))
+    add_camera(scene, (8.5, -9.0, 5.5), (0.0, 0.3, 0.8), lens_mm=35.0)
+    return scene_facts(scene, [lamp])
 
 
 def _instance(
@@ -361,7 +146,7 @@ def _instance(
 
 def _unit_box_mesh(name: str, material: bpy.types.Material) -> bpy.types.Mesh:
     """A 1 m box mesh from (-0.5, -0.5, 0) to (0.5, 0.5, 1), normals out (scale it per object)."""
-    verts, faces = _box((-0.5, -0.5, 0.0), (0.5, 0.5, 1.0))
+    verts, faces = box_geometry((-0.5, -0.5, 0.0), (0.5, 0.5, 1.0))
     mesh = bpy.data.meshes.new(name)
     mesh.from_pydata(verts, [], faces)
     mesh.validate()
@@ -379,16 +164,16 @@ def city(resolution: Sequence[int] = (128, 128), *, shader: str = "DIFFUSE",
     import random
 
     rng = random.Random(seed)
-    scene = _new_scene("city", resolution, new_file)
-    ground = _material("Asphalt", (0.30, 0.30, 0.30), shader)
+    scene = new_scene("city", resolution, new_file)
+    ground = diffuse_material("Asphalt", (0.30, 0.30, 0.30), shader)
     facades = [
-        _material("Plaster", (0.75, 0.70, 0.60), shader),
-        _material("Brick", (0.55, 0.30, 0.22), shader),
-        _material("Concrete", (0.55, 0.55, 0.55), shader),
-        _material("BlueGlass", (0.25, 0.35, 0.50), shader),
-        _material("Sandstone", (0.80, 0.68, 0.45), shader),
+        diffuse_material("Plaster", (0.75, 0.70, 0.60), shader),
+        diffuse_material("Brick", (0.55, 0.30, 0.22), shader),
+        diffuse_material("Concrete", (0.55, 0.55, 0.55), shader),
+        diffuse_material("BlueGlass", (0.25, 0.35, 0.50), shader),
+        diffuse_material("Sandstone", (0.80, 0.68, 0.45), shader),
     ]
-    _mesh_object(scene, "Ground", _box((-100.0, -100.0, -0.5), (100.0, 100.0, 0.0), ["+z"]),
+    add_mesh_object(scene, "Ground", box_geometry((-100.0, -100.0, -0.5), (100.0, 100.0, 0.0), ["+z"]),
                  ground)
     meshes = [_unit_box_mesh(f"Building_{m.name}", m) for m in facades]
     block, street = 18.0, 7.0
@@ -412,10 +197,10 @@ def city(resolution: Sequence[int] = (128, 128), *, shader: str = "DIFFUSE",
                     _instance(scene, f"Building{count:03d}", rng.choice(meshes), (cx, cy, 0.0),
                               (w, d, h))
     # Local -Z rotated 75 deg about X points 15 deg below the horizon, then turned 35 deg.
-    lamp = _light(scene, "Sun", "SUN", 5.0, (0.0, 0.0, 50.0), rotation_deg=(75.0, 0.0, 215.0))
-    cam = _camera(scene, (-118.0, -112.0, 45.0), (-5.0, 5.0, 0.0), lens_mm=30.0)
+    lamp = add_light(scene, "Sun", "SUN", 5.0, (0.0, 0.0, 50.0), rotation_deg=(75.0, 0.0, 215.0))
+    cam = add_camera(scene, (-118.0, -112.0, 45.0), (-5.0, 5.0, 0.0), lens_mm=30.0)
     cam.data.clip_end = 500.0
-    return _facts(scene, [lamp])
+    return scene_facts(scene, [lamp])
 
 
 def sunlit_room(resolution: Sequence[int] = (128, 128), *, shader: str = "DIFFUSE",
@@ -425,44 +210,44 @@ def sunlit_room(resolution: Sequence[int] = (128, 128), *, shader: str = "DIFFUS
     +y wall. A 6 W/m^2 sun 35 deg above the horizon shines in through the window onto a red
     rug; the outside of the walls is sunlit too (light that must not leak in). Camera
     inside the -x/-y corner. Returns the scene's facts."""
-    scene = _new_scene("sunlit_room", resolution, new_file)
-    wall = _material("Wall", (0.78, 0.76, 0.72), shader)
-    floor_mat = _material("Floor", (0.50, 0.36, 0.24), shader)
-    rug = _material("Rug", (0.70, 0.12, 0.10), shader)
-    wood = _material("Wood", (0.55, 0.40, 0.25), shader)
-    fabric = _material("Fabric", (0.20, 0.35, 0.55), shader)
+    scene = new_scene("sunlit_room", resolution, new_file)
+    wall = diffuse_material("Wall", (0.78, 0.76, 0.72), shader)
+    floor_mat = diffuse_material("Floor", (0.50, 0.36, 0.24), shader)
+    rug = diffuse_material("Rug", (0.70, 0.12, 0.10), shader)
+    wood = diffuse_material("Wood", (0.55, 0.40, 0.25), shader)
+    fabric = diffuse_material("Fabric", (0.20, 0.35, 0.55), shader)
     t = 0.2
     x0, x1, y0, y1, z1 = -2.5, 2.5, -2.0, 2.0, 2.8
     wx0, wx1, wz0, wz1 = -0.9, 0.9, 0.9, 2.2  # window opening in the +y wall
-    _mesh_object(scene, "FloorSlab", _box((x0 - t, y0 - t, -t), (x1 + t, y1 + t, 0.0)), floor_mat)
-    _mesh_object(scene, "Roof", _box((x0 - t, y0 - t, z1), (x1 + t, y1 + t, z1 + t)), wall)
+    add_mesh_object(scene, "FloorSlab", box_geometry((x0 - t, y0 - t, -t), (x1 + t, y1 + t, 0.0)), floor_mat)
+    add_mesh_object(scene, "Roof", box_geometry((x0 - t, y0 - t, z1), (x1 + t, y1 + t, z1 + t)), wall)
     walls = _merge(
-        _box((x0 - t, y0, 0.0), (x0, y1, z1)),  # -x
-        _box((x1, y0, 0.0), (x1 + t, y1, z1)),  # +x
-        _box((x0 - t, y0 - t, 0.0), (x1 + t, y0, z1)),  # -y
+        box_geometry((x0 - t, y0, 0.0), (x0, y1, z1)),  # -x
+        box_geometry((x1, y0, 0.0), (x1 + t, y1, z1)),  # +x
+        box_geometry((x0 - t, y0 - t, 0.0), (x1 + t, y0, z1)),  # -y
         # +y wall around the window: below, above, left, right of the opening
-        _box((x0 - t, y1, 0.0), (x1 + t, y1 + t, wz0)),
-        _box((x0 - t, y1, wz1), (x1 + t, y1 + t, z1)),
-        _box((x0 - t, y1, wz0), (wx0, y1 + t, wz1)),
-        _box((wx1, y1, wz0), (x1 + t, y1 + t, wz1)),
+        box_geometry((x0 - t, y1, 0.0), (x1 + t, y1 + t, wz0)),
+        box_geometry((x0 - t, y1, wz1), (x1 + t, y1 + t, z1)),
+        box_geometry((x0 - t, y1, wz0), (wx0, y1 + t, wz1)),
+        box_geometry((wx1, y1, wz0), (x1 + t, y1 + t, wz1)),
     )
-    _mesh_object(scene, "Walls", walls, wall)
-    _mesh_object(scene, "Rug", _box((-1.2, -1.2, 0.0), (1.2, 0.8, 0.02)), rug)
+    add_mesh_object(scene, "Walls", walls, wall)
+    add_mesh_object(scene, "Rug", box_geometry((-1.2, -1.2, 0.0), (1.2, 0.8, 0.02)), rug)
     legs = [
-        _box((x - 0.03, y - 0.03, 0.0), (x + 0.03, y + 0.03, 0.72))
+        box_geometry((x - 0.03, y - 0.03, 0.0), (x + 0.03, y + 0.03, 0.72))
         for x in (-0.55, 0.55) for y in (-0.35, 0.35)
     ]
-    _mesh_object(scene, "Table", _merge(_box((-0.6, -0.4, 0.72), (0.6, 0.4, 0.77)), *legs),
+    add_mesh_object(scene, "Table", _merge(box_geometry((-0.6, -0.4, 0.72), (0.6, 0.4, 0.77)), *legs),
                  wood, location=(1.6, -1.1, 0.0), rotation_z_deg=8.0)
-    sofa = _merge(_box((-1.0, -0.45, 0.0), (1.0, 0.45, 0.45)),
-                  _box((-1.0, -0.45, 0.45), (1.0, -0.25, 0.95)))
-    _mesh_object(scene, "Sofa", sofa, fabric, location=(-0.2, -1.5, 0.0))
-    _mesh_object(scene, "Cabinet", _box((-0.25, -0.6, 0.0), (0.25, 0.6, 1.1)), wood,
+    sofa = _merge(box_geometry((-1.0, -0.45, 0.0), (1.0, 0.45, 0.45)),
+                  box_geometry((-1.0, -0.45, 0.45), (1.0, -0.25, 0.95)))
+    add_mesh_object(scene, "Sofa", sofa, fabric, location=(-0.2, -1.5, 0.0))
+    add_mesh_object(scene, "Cabinet", box_geometry((-0.25, -0.6, 0.0), (0.25, 0.6, 1.1)), wood,
                  location=(2.2, 0.6, 0.0))
     # Local -Z rotated -55 deg about X travels towards -y, 35 deg below the horizon.
-    lamp = _light(scene, "Sun", "SUN", 6.0, (0.0, 6.0, 6.0), rotation_deg=(-55.0, 0.0, 18.0))
-    _camera(scene, (-2.25, -1.75, 1.55), (0.6, 1.0, 0.7), lens_mm=16.0)
-    return _facts(scene, [lamp])
+    lamp = add_light(scene, "Sun", "SUN", 6.0, (0.0, 6.0, 6.0), rotation_deg=(-55.0, 0.0, 18.0))
+    add_camera(scene, (-2.25, -1.75, 1.55), (0.6, 1.0, 0.7), lens_mm=16.0)
+    return scene_facts(scene, [lamp])
 
 
 def library(resolution: Sequence[int] = (128, 128), *, shader: str = "DIFFUSE",
@@ -475,33 +260,33 @@ def library(resolution: Sequence[int] = (128, 128), *, shader: str = "DIFFUSE",
     import random
 
     rng = random.Random(seed)
-    scene = _new_scene("library", resolution, new_file)
-    wall = _material("Wall", (0.80, 0.77, 0.70), shader)
-    floor_mat = _material("Parquet", (0.45, 0.30, 0.18), shader)
-    ceiling = _material("Ceiling", (0.85, 0.85, 0.85), shader)
-    wood = _material("DarkWood", (0.30, 0.18, 0.10), shader)
-    green = _material("TableTop", (0.15, 0.40, 0.20), shader)
+    scene = new_scene("library", resolution, new_file)
+    wall = diffuse_material("Wall", (0.80, 0.77, 0.70), shader)
+    floor_mat = diffuse_material("Parquet", (0.45, 0.30, 0.18), shader)
+    ceiling = diffuse_material("Ceiling", (0.85, 0.85, 0.85), shader)
+    wood = diffuse_material("DarkWood", (0.30, 0.18, 0.10), shader)
+    green = diffuse_material("TableTop", (0.15, 0.40, 0.20), shader)
     book_colors = [(0.60, 0.10, 0.08), (0.10, 0.20, 0.50), (0.15, 0.40, 0.15),
                    (0.70, 0.60, 0.35), (0.35, 0.20, 0.40), (0.80, 0.78, 0.70)]
-    books = [_unit_box_mesh(f"Book{i}", _material(f"Binding{i}", c, shader))
+    books = [_unit_box_mesh(f"Book{i}", diffuse_material(f"Binding{i}", c, shader))
              for i, c in enumerate(book_colors)]
     lo, hi = (-8.0, -5.0, 0.0), (8.0, 5.0, 4.0)
-    _mesh_object(scene, "Floor", _box(lo, hi, ["-z"], inward=True), floor_mat)
-    _mesh_object(scene, "Ceiling", _box(lo, hi, ["+z"], inward=True), ceiling)
-    _mesh_object(scene, "Walls", _box(lo, hi, ["-x", "+x", "-y", "+y"], inward=True), wall)
+    add_mesh_object(scene, "Floor", box_geometry(lo, hi, ["-z"], inward=True), floor_mat)
+    add_mesh_object(scene, "Ceiling", box_geometry(lo, hi, ["+z"], inward=True), ceiling)
+    add_mesh_object(scene, "Walls", box_geometry(lo, hi, ["-x", "+x", "-y", "+y"], inward=True), wall)
     # Bookcases: 2 m wide, 0.4 m deep, 2.4 m high, 5 shelves, facing +-y in two rows.
     case_w, case_d, case_h, shelves = 2.0, 0.4, 2.4, 5
-    case_parts = [_box((-case_w / 2, -case_d / 2, 0.0), (case_w / 2, -case_d / 2 + 0.03, case_h))]
-    case_parts += [_box((sx - 0.02, -case_d / 2, 0.0), (sx + 0.02, case_d / 2, case_h))
+    case_parts = [box_geometry((-case_w / 2, -case_d / 2, 0.0), (case_w / 2, -case_d / 2 + 0.03, case_h))]
+    case_parts += [box_geometry((sx - 0.02, -case_d / 2, 0.0), (sx + 0.02, case_d / 2, case_h))
                    for sx in (-case_w / 2, case_w / 2)]
-    case_parts += [_box((-case_w / 2, -case_d / 2, z), (case_w / 2, case_d / 2, z + 0.03))
+    case_parts += [box_geometry((-case_w / 2, -case_d / 2, z), (case_w / 2, case_d / 2, z + 0.03))
                    for z in [k * case_h / shelves for k in range(shelves)] + [case_h - 0.03]]
     case_geo = _merge(*case_parts)
     n_books = 0
     placements = [(x, y, 0.0) for x in (-5.0, -2.5, 0.0, 2.5, 5.0) for y in (-4.75,)]
     placements += [(x, y, 180.0) for x in (-5.0, -2.5, 0.0, 2.5, 5.0) for y in (4.75,)]
     for c, (cx, cy, rot) in enumerate(placements):
-        _mesh_object(scene, f"Bookcase{c:02d}", case_geo, wood, location=(cx, cy, 0.0),
+        add_mesh_object(scene, f"Bookcase{c:02d}", case_geo, wood, location=(cx, cy, 0.0),
                      rotation_z_deg=rot)
         sign = 1.0 if rot == 0.0 else -1.0
         for k in range(shelves):
@@ -520,20 +305,20 @@ def library(resolution: Sequence[int] = (128, 128), *, shader: str = "DIFFUSE",
                           (w * 0.95, d, h), rotation_z_deg=rot)
                 x += w
     for t, tx in enumerate((-4.0, 0.0, 4.0)):
-        legs = [_box((x - 0.04, y - 0.04, 0.0), (x + 0.04, y + 0.04, 0.74))
+        legs = [box_geometry((x - 0.04, y - 0.04, 0.0), (x + 0.04, y + 0.04, 0.74))
                 for x in (-0.9, 0.9) for y in (-0.45, 0.45)]
-        _mesh_object(scene, f"Table{t}", _merge(_box((-1.0, -0.5, 0.74), (1.0, 0.5, 0.78)),
+        add_mesh_object(scene, f"Table{t}", _merge(box_geometry((-1.0, -0.5, 0.74), (1.0, 0.5, 0.78)),
                                                 *legs), green, location=(tx, 0.0, 0.0))
         for ci, (dx, dy, rot) in enumerate(((-0.5, -0.85, 0.0), (0.5, -0.85, 0.0),
                                             (-0.5, 0.85, 180.0), (0.5, 0.85, 180.0))):
-            chair = _merge(_box((-0.22, -0.22, 0.42), (0.22, 0.22, 0.46)),
-                           _box((-0.22, -0.26, 0.0), (0.22, -0.22, 0.9)))
-            _mesh_object(scene, f"Chair{t}{ci}", chair, wood, location=(tx + dx, dy, 0.0),
+            chair = _merge(box_geometry((-0.22, -0.22, 0.42), (0.22, 0.22, 0.46)),
+                           box_geometry((-0.22, -0.26, 0.0), (0.22, -0.22, 0.9)))
+            add_mesh_object(scene, f"Chair{t}{ci}", chair, wood, location=(tx + dx, dy, 0.0),
                          rotation_z_deg=rot)
-    lamps = [_light(scene, f"Lamp{i}", "POINT", 250.0, (x, 0.0, 3.6))
+    lamps = [add_light(scene, f"Lamp{i}", "POINT", 250.0, (x, 0.0, 3.6))
              for i, x in enumerate((-6.0, -2.0, 2.0, 6.0))]
-    _camera(scene, (-7.6, -1.2, 1.7), (0.0, 0.6, 1.1), lens_mm=20.0)
-    return _facts(scene, lamps)
+    add_camera(scene, (-7.6, -1.2, 1.7), (0.0, 0.6, 1.1), lens_mm=20.0)
+    return scene_facts(scene, lamps)
 
 
 BUILDERS: dict[str, Callable[..., dict]] = {

@@ -7,8 +7,9 @@ surface, so light diffuses (travels ~sqrt(k) cells in k steps) and surfaces ligh
 The same two moments are also met by the maximum-entropy distribution
 p(w) ~ exp(kappa <d, w>) (the M1 closure of radiative transfer), which keeps a beam a beam
 (kappa -> inf as |F| / Phi -> 1), is isotropic for a zero flux vector, and is never negative.
-We read cells that way for propagation and lookup (``angular="m1"``); storage, injection and
-the moments themselves are unchanged.
+The discrete-ordinates transport reads injected cells as emitted light (``emission_density``,
+ordinates.unfold) and a 4-coefficient "dom" grid as such a lobe at lookup
+(``cosine_expectation``); storage, injection and the moments themselves are unchanged.
 
 For the mean cosine r = |F| / Phi we solve coth(kappa) - 1/kappa = r with the approximation
 kappa = r (3 - r^2) / (1 - r^2) (Banerjee et al. 2005, JMLR 6, "Clustering on the unit
@@ -22,11 +23,11 @@ import numpy as np
 from .. import sh
 
 # Flux-weighted mean cosine of a diffuse emitter's light, int cos^2 / int cos = 2/3: the
-# injected VPL lobe, the emission reading's cos^1 and propagation's cap (propagation._m1_tables).
+# injected VPL lobe and the emission reading's cos^1.
 LAMBERTIAN_MEAN_COSINE = 2.0 / 3.0
-# Angular models whose propagated cells are read as maximum-entropy lobes at lookup: "m1"
-# (read that way at every step) and "dom" (ordinates.py: folded into moments once, at the end).
-LOBE_MODELS = ("m1", "dom")
+# Angular models whose 4-coefficient cells are read as maximum-entropy lobes at lookup: "dom"
+# (ordinates.py: folded into moments once, at the end; its lookup grid has 9 coefficients).
+LOBE_MODELS = ("dom",)
 MAX_MEAN_COSINE = 0.995  # kappa ~ 200: a beam narrower than any cell's solid angles
 # Net flux vector from band-1 coefficients: F = a1 * Y1 * 4 pi / 3 per axis.
 FLUX_FROM_BAND1 = sh.Y1 * 4.0 * np.pi / 3.0

@@ -1,18 +1,18 @@
-"""Octant sweep: the compiled transport sweep (sweep.py) of all directions of an octant at
-once, launched, swept and folded to SH slab by slab, so the per-direction light is never
-written out.
+"""Octant sweep: the compiled twin of sweep.launch_sweep_fold (``_launch_sweep_fold_compiled``),
+the transport sweep of all directions of an octant at once, launched, swept and folded to SH
+slab by slab, so the per-direction light is never written out.
 
 All directions of an octant share their signs, their upwind neighbour offsets and the
-transmittances they read (sweep.direction_tables: the same koff); only the trilinear weights
+transmittances they read (``direction_tables``: the same koff); only the trilinear weights
 and 1 / (1 - w_0) differ. So a cell holds the light of its octant's directions side by side,
 colour-major (lane = w colour + direction, w = 9 for the octants of 9 directions, 7 for
 those of 7), and one cell update is 4 (or 3) AVX2 vectors per neighbour: the serial
-recurrence along z of sweep._sweep_direction, run once per octant instead of once per
-direction. numba does not vectorize such a lane loop by itself (every array may alias every
+recurrence along z (cell by cell in upwind order: slabs along x, rows along y), run once per
+octant instead of once per direction. numba does not vectorize such a lane loop by itself (every array may alias every
 other: it emitted runtime checks and index arithmetic worth ~60 ns a cell), so the vector
 code is written out as LLVM IR (numba intrinsics: ``_cell*``, ``_fold4*``,
 ``_launch_lanes*``). The lanes after the light hold the cell's face transmittances towards
-the octant: a neighbour's transmittance is their product (propagation._offset_visibilities),
+the octant: a neighbour's transmittance is their product (quadrature.offset_visibilities),
 read with its light (7 rows of 27 streamed beside it cost ~10 ns a cell).
 
 Per octant, slabs along x in upwind order live in a ring of 4 slabs: the one swept, the one
@@ -23,10 +23,9 @@ light reaches are skipped. The handed-on light (``passing``) is a source, and it
 taken off at the end (it is not an arrival). Layout and meaning of the result are those of
 ``sweep.fold_parts(sweep.launch_solve(...))``, whose numpy code stays the reference.
 
-Stated-quality Cornell box (32^3, two cascades), one process, alternating with the
-per-direction kernels it replaces: the propagation stage 61 -> 34 and 49 -> 34 ms in two
-runs (medians of 31 updates on this shared 2-core VM), the cascades alone 12.9 -> 7.3 and
-20.5 -> 15.2 ms; the same values to 2e-7 of the largest.
+Stated-quality Cornell box (32^3, two cascades), against a compiled sweep direction by
+direction: the propagation stage 61 -> 34 ms (medians of 31 updates on a shared 2-core VM);
+the same values to 2e-7 of the largest.
 """
 
 from __future__ import annotations
@@ -34,9 +33,10 @@ from __future__ import annotations
 import numpy as np
 
 from .. import sh
-from ..runtime import jit
+from ..runtime import jit, pool
 from . import ordinates
-from . import sweep as transport_sweep
+from .quadrature import DIRECTIONS, SIGNED_OFFSETS
+from .quadrature import tables as ordinate_tables
 
 LANES = 32  # floats per cell: 3 colours x 9 (or 7) directions, then VIS, padded to 4 x 8
 WIDE, NARROW = 9, 7  # an octant's directions per colour block (64 directions: 9 or 7)
@@ -46,6 +46,7 @@ B8 = WIDE * BASIS_STRIDE  # then the last coefficient's basis per lane (LANES)
 RING = 4  # slabs of an octant held at once (one more slot takes launches that leave the grid)
 GEOMETRY = 16  # lanes of a lit cell's launch geometry: one per direction of the octant
 _TABLES: dict = {}
+_DIRECTION_TABLES: dict = {}  # q -> per-direction tables (direction_tables, _basis2)
 
 
 def width(count: int) -> int:
@@ -65,8 +66,49 @@ def chunks(colour_lanes: int) -> int:
 
 def supported(q: int | None = None) -> bool:
     """Whether every octant of the q directions fits a colour block (64: 7 or 9 each)."""
-    groups = ordinates.tables(q)[2]
+    groups = ordinate_tables(q)[2]
     return all(sl.stop - sl.start <= WIDE for sl, _ in groups)
+
+
+def direction_tables() -> dict:
+    """Per direction, in ordinates.tables order (cached): its octant's signs (q, 3), per
+    SIGNED_OFFSETS entry its trilinear weight (q, 7) and its index into propagation.OFFSETS
+    (q, 7) ("none": all 0), 1 / (1 - w_0) (q,), the SIGNED_OFFSETS themselves (7, 3) and
+    each octant's (first, stop) direction: what the octant tables are built from (the numpy sweep's
+    ``plan`` and ``factors`` hold the same per position)."""
+    q = DIRECTIONS
+    if q in _DIRECTION_TABLES:
+        return _DIRECTION_TABLES[q]
+    dirs, _, groups = ordinate_tables()
+    sign = np.where(dirs < 0, -1, 1).astype(np.int64)
+    weight = np.zeros((q, len(SIGNED_OFFSETS)), np.float32)
+    koff = np.zeros((q, len(SIGNED_OFFSETS)), np.int64)
+    inv = np.empty(q, np.float32)
+    for sl, pairs in groups:
+        for k_off, off, w in pairs:
+            w = w[:, 0, 0, 0, 0]
+            soff = tuple(abs(x) for x in off)
+            if soff == (0, 0, 0):
+                inv[sl] = 1.0 / (1.0 - w)
+                continue
+            m = SIGNED_OFFSETS.index(soff)
+            weight[sl, m] = w
+            koff[sl, m] = k_off
+    _DIRECTION_TABLES[q] = {"sign": sign, "weight": weight, "koff": koff,
+                            "none": np.zeros_like(koff), "inv": inv,
+                            "offsets": np.array(SIGNED_OFFSETS, np.int64),
+                            "octants": [(sl.start, sl.stop) for sl, _ in groups]}
+    return _DIRECTION_TABLES[q]
+
+
+def _basis2() -> np.ndarray:
+    """The band 0-2 basis of the directions, transposed (9, q) float32 (cached)."""
+    dirs = ordinate_tables()[0]
+    key = ("basis2", len(dirs))
+    if key not in _DIRECTION_TABLES:
+        _DIRECTION_TABLES[key] = np.ascontiguousarray(
+            sh.evaluate_basis2(dirs).astype(np.float32).T)
+    return _DIRECTION_TABLES[key]
 
 
 def tables() -> dict:
@@ -76,11 +118,11 @@ def tables() -> dict:
     (the transmittances pass through), 0 in unused lanes - the band 0-2 basis of each
     direction then the last coefficient's per lane (8, B8 + LANES), and the directions' x,
     y, z components and a 1 for each (8, 4 GEOMETRY), 0 past the octant's count."""
-    q = ordinates.DIRECTIONS
+    q = DIRECTIONS
     if q in _TABLES:
         return _TABLES[q]
-    tab = transport_sweep.direction_tables()
-    basis2 = transport_sweep._basis2()  # (9, q)
+    tab = direction_tables()
+    basis2 = _basis2()  # (9, q)
     octants = tab["octants"]
     k = len(octants)
     sign = np.zeros((k, 3), np.int64)
@@ -89,7 +131,7 @@ def tables() -> dict:
     basis = np.zeros((k, B8 + LANES), np.float32)
     dirs = np.zeros((k, 4, GEOMETRY), np.float32)
     for o, (d0, d1) in enumerate(octants):
-        dirs[o, :3, :d1 - d0] = ordinates.tables()[0][d0:d1].T
+        dirs[o, :3, :d1 - d0] = ordinate_tables()[0][d0:d1].T
         dirs[o, 3, :d1 - d0] = 1.0
         sign[o], span[o] = tab["sign"][d0], (d0, d1 - d0)
         w = width(d1 - d0)
@@ -361,7 +403,7 @@ def _add_clear(typingctx, dst, d, src, s):
 
 
 def _launch_fractions(builder, d, m, signs):
-    """ordinates._launch_direction's float32 arithmetic, one lane per direction (GEOMETRY
+    """ordinates._launch_direction_kernel's float32 arithmetic, one lane per direction (GEOMETRY
     lanes, the same operations in the same order): per axis the fraction towards the far
     corner, and where the corners are the octant's own (base 0 on its positive axes, -1 on
     its negative ones)."""
@@ -481,10 +523,10 @@ _launch_w, _launch_n = _launch_intrinsic(WIDE), _launch_intrinsic(NARROW)
 
 
 @jit.kernel
-def _scatter_direction(flux, m, xyz, dirs, lvis, e, j, dd, w, ring, live, p, lo, hi,
+def _scatter_direction_kernel(flux, m, xyz, dirs, lvis, e, j, dd, w, ring, live, p, lo, hi,
                        sx, sy, sz):  # pragma: no cover - compiled
     """The launch of lit cell e along direction j (lane dd of its octant, colour block w;
-    ``flux`` its rows (n, 3 GEOMETRY)) added corner by corner: ordinates._launch_direction
+    ``flux`` its rows (n, 3 GEOMETRY)) added corner by corner: ordinates._launch_direction_kernel
     for one (cell, direction), for the few whose corners are not the octant's own
     (``_launch_lanes``). Targets in slabs outside lo..hi-1 (the shell, when it is not swept)
     are dropped; the rows reached are marked in ``live``."""
@@ -494,7 +536,7 @@ def _scatter_direction(flux, m, xyz, dirs, lvis, e, j, dd, w, ring, live, p, lo,
     n = hi - lo
     x, y, z = xyz[e, 0], xyz[e, 1], xyz[e, 2]
     f0, f1, f2 = flux[e, dd], flux[e, GEOMETRY + dd], flux[e, 2 * GEOMETRY + dd]
-    bx, by, bz, fx, fy, fz = ordinates.launch_corners(dirs[j, 0], dirs[j, 1], dirs[j, 2],
+    bx, by, bz, fx, fy, fz = ordinates.launch_corners_kernel(dirs[j, 0], dirs[j, 1], dirs[j, 2],
                                                       m[e, 0], m[e, 1], m[e, 2])
     for cx in range(2):
         u = x + bx + cx - lo if sx > 0 else hi - 1 - x - bx - cx
@@ -519,13 +561,13 @@ def _scatter_direction(flux, m, xyz, dirs, lvis, e, j, dd, w, ring, live, p, lo,
 
 
 @jit.kernel
-def _scatter_slab(flux, m, xyz, dirs, lvis, e0, e1, o, d0, wide, odirs, sign, ring, live, p,
+def _scatter_slab_kernel(flux, m, xyz, dirs, lvis, e0, e1, o, d0, wide, odirs, sign, ring, live, p,
                   lo, hi):  # pragma: no cover - compiled
     """The launch of lit cells e0..e1-1 (padded cells xyz[e]) along the octant's directions
     from d0 into the ring: those landing on the octant's own corners (base cell b = the
     cell, less 1 on the octant's negative axes, and b + {0, 1}^3) as lanes
     (``_launch_lanes``), any other (a tilted emitter turning its sideways shift against the
-    octant) by ``_scatter_direction``. Corners in slabs outside lo..hi-1 go to the ring's
+    octant) by ``_scatter_direction_kernel``. Corners in slabs outside lo..hi-1 go to the ring's
     spare slot (dropped); the rows reached are marked in ``live``. ``flux``: the lit cells'
     colour rows per octant (8, n, 3 GEOMETRY). One call per slab of lit cells, scalars only
     inside: a call or an array view per lit cell (reference counts) cost more than its
@@ -570,14 +612,14 @@ def _scatter_slab(flux, m, xyz, dirs, lvis, e0, e1, o, d0, wide, odirs, sign, ri
         dd = 0
         while left:
             if left & 1:
-                _scatter_direction(lanes, m, xyz, dirs, lvis, e, d0 + dd, dd, w, ring, live, p,
+                _scatter_direction_kernel(lanes, m, xyz, dirs, lvis, e, d0 + dd, dd, w, ring, live, p,
                                    lo, hi, sx, sy, sz)
             left >>= 1
             dd += 1
 
 
 @jit.kernel
-def _fill_slot(ring, live, slot, x, faces, face, p, n, vis):  # pragma: no cover - compiled
+def _fill_slot_kernel(ring, live, slot, x, faces, face, p, n, vis):  # pragma: no cover - compiled
     """Ready ring slot ``slot`` for slab x: no light (the rows its last slab lit emptied; all
     its rows dark: ``live`` n), and in lanes vis.. of each interior cell the transmittances
     of its faces the octant's light leaves through (faces[face[a]], axis a: 1 without
@@ -605,18 +647,18 @@ def _fill_slot(ring, live, slot, x, faces, face, p, n, vis):  # pragma: no cover
 
 
 @jit.kernel
-def _sweep_slab(ring, live, sc, sp, i, first, sy, sz, p, shell, wide, factors, basis, values,
+def _sweep_slab_kernel(ring, live, sc, sp, i, first, sy, sz, p, shell, wide, factors, basis, values,
                 outflow, row_values, row_outflow):  # pragma: no cover - compiled
     """Sweep and fold one slab x = i (ring slot ``sc``, the slab behind in slot ``sp``): row
     by row along y, cell by cell along z in upwind order, each cell one ``_cell*`` (the
     transmittance of each source towards the cell: the product of its faces' in its lanes
-    VIS, in propagation._offset_visibilities' order; all 1: ``_open``), then folded (interior:
+    VIS, in quadrature.offset_visibilities' order; all 1: ``_open``), then folded (interior:
     bands 0-2 into ``row_values``, shell: bands 0-1 into ``row_outflow``). A row starts at
     the first cell light can reach (``live``: of its source and of the rows it receives
     from; dark rows are skipped: 58% of the fine Cornell cascade's, 15% of the coarse
     one's). With the shell, cells on its upwind faces (and the whole ``first`` slab) receive
     nothing: their light is their source. A swept row's folds go to the sums in one
-    streaming pass (``_add_row``), the sums' cache lines not fetched cell by cell."""
+    streaming pass (``_add_row_kernel``), the sums' cache lines not fetched cell by cell."""
     r = p - 2
     lo, hi = (0, p) if shell else (1, p - 1)
     n = hi - lo
@@ -690,17 +732,17 @@ def _sweep_slab(ring, live, sc, sp, i, first, sy, sz, p, shell, wide, factors, b
             else:
                 _cell4_n(ring, o, srcs, vs, factors, t, basis, out, at)
         if inner_row:  # the row's folds to the sums
-            _add_row(values, ((i - 1) * r + j - 1) * r * 27, row_values, 0, r * 27)
+            _add_row_kernel(values, ((i - 1) * r + j - 1) * r * 27, row_values, 0, r * 27)
         if shell and inner_row:  # its two shell cells
             at = (i * p + j) * p * 12
-            _add_row(outflow, at, row_outflow, 0, 12)
-            _add_row(outflow, at + (p - 1) * 12, row_outflow, (p - 1) * 12, 12)
+            _add_row_kernel(outflow, at, row_outflow, 0, 12)
+            _add_row_kernel(outflow, at + (p - 1) * 12, row_outflow, (p - 1) * 12, 12)
         elif shell:
-            _add_row(outflow, (i * p + j) * p * 12, row_outflow, 0, p * 12)
+            _add_row_kernel(outflow, (i * p + j) * p * 12, row_outflow, 0, p * 12)
 
 
 @jit.kernel
-def _add_row(dst, d, src, s, count):  # pragma: no cover - compiled
+def _add_row_kernel(dst, d, src, s, count):  # pragma: no cover - compiled
     """dst[d:d+count] += src[s:s+count], emptying src there: 8 floats at a time
     (``_add_clear``), the rest one by one."""
     whole = count - count % 8
@@ -719,7 +761,7 @@ def _octant_kernel(o, sign, span, factors, basis, odirs, flux, m, xyz, dirs, lvi
     one's sources completed first (the launch of the lit cells one slab ahead, the handed-on
     light in it); per ring slot and row the first cell light may have reached (``live``:
     n, none) lets the sweep skip what stays dark. ``ring`` and ``live`` carry over from the
-    worker's octant before: a slot is emptied where that left light (``_fill_slot``)."""
+    worker's octant before: a slot is emptied where that left light (``_fill_slot_kernel``)."""
     sx, sy, sz = sign[o, 0], sign[o, 1], sign[o, 2]
     d0, count = span[o, 0], span[o, 1]
     wide = count > NARROW
@@ -731,15 +773,15 @@ def _octant_kernel(o, sign, span, factors, basis, odirs, flux, m, xyz, dirs, lvi
         face[a] = 2 * a + (1 if sign[o, a] < 0 else 0)
     row_values, row_outflow = np.zeros(p * 27, np.float32), np.zeros(p * 12, np.float32)
     fac, bas = factors[o], basis[o]
-    _fill_slot(ring, live, RING - 1, lo - 1 if sx > 0 else hi, faces, face, p, n, 3 * w)
+    _fill_slot_kernel(ring, live, RING - 1, lo - 1 if sx > 0 else hi, faces, face, p, n, 3 * w)
     for ii in range(n):
         for u in range(ii + 2 if ii > 0 else 0, ii + 3):  # ready slots up to slab ii + 2
-            _fill_slot(ring, live, u % RING, lo + u if sx > 0 else hi - 1 - u, faces, face, p,
+            _fill_slot_kernel(ring, live, u % RING, lo + u if sx > 0 else hi - 1 - u, faces, face, p,
                        n, 3 * w)
         for u in range(ii + 1 if ii > 0 else 0, ii + 2):  # lit cells of slab ii + 1 (and 0)
             x = lo + u if sx > 0 else hi - 1 - u
             if 0 <= x < p and lit_first[x] < lit_first[x + 1]:
-                _scatter_slab(flux, m, xyz, dirs, lvis, lit_first[x], lit_first[x + 1], o, d0,
+                _scatter_slab_kernel(flux, m, xyz, dirs, lvis, lit_first[x], lit_first[x + 1], o, d0,
                               wide, odirs, sign, ring, live, p, lo, hi)
         i = lo + ii if sx > 0 else hi - 1 - ii
         sc = ii % RING
@@ -751,24 +793,24 @@ def _octant_kernel(o, sign, span, factors, basis, odirs, flux, m, xyz, dirs, lvi
                 ring[at + dd] += pflux[o, e, dd]
             j, k = cell // p, cell % p
             live[sc, j] = min(live[sc, j], k - lo if sz > 0 else hi - 1 - k)
-        _sweep_slab(ring, live, sc, (ii + RING - 1) % RING, i, shell and ii == 0, sy, sz, p,
+        _sweep_slab_kernel(ring, live, sc, (ii + RING - 1) % RING, i, shell and ii == 0, sy, sz, p,
                     shell, wide, fac, bas, values, outflow, row_values, row_outflow)
-def launch_sweep_fold(injected: np.ndarray, visibility: np.ndarray | None,
+def _launch_sweep_fold_compiled(injected: np.ndarray, visibility: np.ndarray | None,
                       passing: np.ndarray | None = None, shell: bool = True,
                       occlude_launch: bool = True) -> tuple:
-    """The propagation of sweep.launch_solve folded as sweep.fold_parts, in one pass per
-    octant (compiled only: call it when ``jit.enabled()`` and ``supported()``): ``injected``
+    """sweep.launch_sweep_fold compiled: the propagation of sweep.launch_solve folded as
+    sweep.fold_parts, in one pass per octant (call it when ``jit.enabled()``): ``injected``
     (R, R, R, 3, 4) launched from its surfaces, ``passing`` (the same, or None) handed on,
     both swept through the face transmittances ``visibility`` (6, R, R, R) or None; the
     launch occluded by them when ``occlude_launch``. Returns (values (R, R, R, 3, 9), outflow
     (R+2, R+2, R+2, 3, 4) with a zero interior, or None without ``shell``): the same as
     ``fold_parts(launch_solve(injected, offvis if occlude_launch else None, passing, offvis,
-    shell), R, shell)`` with offvis = propagation._offset_visibilities(visibility).
-    The octants run on ordinates' pool, a fixed share per worker, each worker adding to its
+    shell), R, shell)`` with offvis = quadrature.offset_visibilities(visibility).
+    The octants run on the thread pool (runtime/pool.py), a fixed share per worker, each worker adding to its
     own sums, added up in a fixed order: the same bits every run (a worker taking whichever
     octant came next added them in a varying order)."""
     work = _inputs(injected, visibility, passing, shell, occlude_launch)
-    shares = _shares(ordinates.pool_workers())
+    shares = _shares(pool.workers())
     sums = [None] * len(shares)
 
     def run(w: int) -> None:
@@ -778,10 +820,10 @@ def launch_sweep_fold(injected: np.ndarray, visibility: np.ndarray | None,
             for o in shares[w]:
                 _run_octant(work, o, ring, *sums[w])
 
-    for _ in ordinates._pool().map(run, range(len(shares))):
+    for _ in pool.executor().map(run, range(len(shares))):
         pass  # iterating re-raises a worker's exception here
     parts = max(2, len(shares))
-    for _ in ordinates._pool().map(lambda w: _add_part(work, sums, w, parts), range(parts)):
+    for _ in pool.executor().map(lambda w: _add_part(work, sums, w, parts), range(parts)):
         pass
     return _finish(work, *sums[0])
 
@@ -809,7 +851,7 @@ def _add_part(work: dict, sums: list, w: int, parts: int) -> None:
     if work["shell"] and len(sums) > 1:
         p = work["p"]
         for other in sums[1:]:
-            _add_shell(sums[0][1], other[1], p, w * p // parts, (w + 1) * p // parts)
+            _add_shell_kernel(sums[0][1], other[1], p, w * p // parts, (w + 1) * p // parts)
 
 
 def _take_off_passing(work: dict, values: np.ndarray, c0: int, c1: int) -> None:
@@ -830,7 +872,7 @@ def _take_off_passing(work: dict, values: np.ndarray, c0: int, c1: int) -> None:
 
 
 @jit.kernel
-def _add_shell(dst, src, p, i0, i1):  # pragma: no cover - compiled
+def _add_shell_kernel(dst, src, p, i0, i1):  # pragma: no cover - compiled
     """dst += src on the shell cells (12 floats each) of padded slabs i0..i1-1."""
     row = p * 12
     for i in range(i0, i1):
@@ -846,7 +888,7 @@ def _add_shell(dst, src, p, i0, i1):  # pragma: no cover - compiled
 
 
 @jit.kernel
-def _zero_shell(out, p):  # pragma: no cover - compiled
+def _zero_shell_kernel(out, p):  # pragma: no cover - compiled
     """out = 0 on the shell cells (12 floats each) of the padded grid; the rest as it is."""
     row = p * 12
     for i in range(p):
@@ -876,7 +918,7 @@ def _inputs(injected: np.ndarray, visibility: np.ndarray | None, passing: np.nda
 def _direction_lanes(octant_stride: int) -> np.ndarray:
     """Where direction j's value goes in a row of octant lanes: its octant's place (octant
     o at o ``octant_stride``) plus its place in the octant (q,)."""
-    base = np.empty(ordinates.DIRECTIONS, np.int64)
+    base = np.empty(DIRECTIONS, np.int64)
     for o, (d0, count) in enumerate(tables()["span"]):
         base[d0:d0 + count] = o * octant_stride + np.arange(count)
     return base
@@ -890,12 +932,12 @@ def _launch_inputs(injected: np.ndarray, visibility: np.ndarray | None) -> dict:
     cell of each slab ((R+3,), the lit cells in flat order)."""
     r = injected.shape[0]
     cells = np.ascontiguousarray(injected, np.float32).reshape(-1, 4)
-    lit, rows, xyz, lit_first = _lit_cells(cells, r)
+    lit, rows, xyz, lit_first = _lit_cells_kernel(cells, r)
     # lanes past an octant's directions are left as they are: _launch_lanes never reads them
     flux = np.empty((8, lit.size, 3 * GEOMETRY), np.float32)
-    dirs = ordinates.tables()[0]
-    ordinates._unfold_compiled(cells, rows, np.arange(rows.size) * GEOMETRY, dirs, flux,
-                               _direction_lanes(lit.size * 3 * GEOMETRY))
+    dirs = ordinate_tables()[0]
+    ordinates._unfold_rows_compiled(cells, rows, np.arange(rows.size) * GEOMETRY, dirs, flux,
+                                    _direction_lanes(lit.size * 3 * GEOMETRY))
     m = ordinates.emission_directions(cells, lit)
     lvis = np.zeros((lit.size, 0), np.float32)
     if visibility is not None:
@@ -905,7 +947,7 @@ def _launch_inputs(injected: np.ndarray, visibility: np.ndarray | None) -> dict:
 
 
 @jit.kernel
-def _lit_cells(cells, r):  # pragma: no cover - compiled
+def _lit_cells_kernel(cells, r):  # pragma: no cover - compiled
     """ordinates.lit_rows and launch_geometry's cells, compiled: (lit cells (n,), their 3 n
     (cell, colour) rows, padded cells (n, 3), the first lit cell of each padded slab
     (R+3,)); lit where the colours' band 0 sum (in order) is > 0."""
@@ -953,7 +995,7 @@ def _offset_visibility_kernel(faces, cells, out):  # pragma: no cover - compiled
 
 
 def _offset_visibility_at(visibility: np.ndarray, cells: np.ndarray) -> np.ndarray:
-    """propagation._offset_visibilities(visibility) at the flat ``cells`` only, side by side
+    """quadrature.offset_visibilities(visibility) at the flat ``cells`` only, side by side
     (n, 27) float32: the same products in the same order, for n cells instead of R^3."""
     v = np.asarray(visibility).reshape(6, -1)[:, cells]
     one = np.ones((1, cells.size), v.dtype)
@@ -971,16 +1013,16 @@ def _passing_inputs(passing: np.ndarray | None, r: int) -> tuple:
     if passing is None:
         passing = np.zeros((0, 3, 4), np.float32)
     cells = np.ascontiguousarray(passing, np.float32).reshape(-1, 4)
-    rows, pcell, colour, first = _passing_cells(cells, r)
+    rows, pcell, colour, first = _passing_cells_kernel(cells, r)
     flux = np.zeros((8, rows.size, GEOMETRY), np.float32)
-    ordinates._unfold_compiled(cells, rows, np.arange(rows.size) * GEOMETRY,
-                               ordinates.tables()[0], flux,
-                               _direction_lanes(rows.size * GEOMETRY))
+    ordinates._unfold_rows_compiled(cells, rows, np.arange(rows.size) * GEOMETRY,
+                                    ordinate_tables()[0], flux,
+                                    _direction_lanes(rows.size * GEOMETRY))
     return pcell, colour, flux, first
 
 
 @jit.kernel
-def _passing_cells(cells, r):  # pragma: no cover - compiled
+def _passing_cells_kernel(cells, r):  # pragma: no cover - compiled
     """The (cell, colour) rows of ``cells`` ((R^3 3, 4)) whose band 0 is > 0, their padded
     flat cells and colours, and the first of each padded slab (R+3,): ``_passing_inputs``'
     index arithmetic, compiled."""
@@ -1025,7 +1067,7 @@ def _zero_sums(work: dict, whole: bool = True) -> tuple:
     if whole:
         return values, np.zeros(p**3 * 3 * 4, np.float32)
     outflow = np.empty(p**3 * 3 * 4, np.float32)
-    _zero_shell(outflow, p)
+    _zero_shell_kernel(outflow, p)
     return values, outflow
 
 

@@ -1,24 +1,24 @@
 """Discrete-ordinates propagation (angular="dom"): each cell carries its light as flux along
-64 fixed directions for the whole propagation, instead of re-reading a 4-coefficient lobe at
-every step.
+64 fixed directions (quadrature.py) for the whole propagation, instead of re-reading a
+4-coefficient lobe at every step.
 
-A two-moment cell (KD10's 2-band SH, or its maximum-entropy reading "m1") must fold the light
-crossing it from all sides into one lobe per step; the fold either blurs beams (SH) or merges
-crossing beams into one false beam (M1), and the error compounds over the ~R steps light
-travels. Here the injected lobe is unfolded once into the quadrature directions (the emission
-reading of closure.emission_density: a VPL's cos lobe), each direction's flux is advected one
-cell length per step semi-Lagrangian (trilinear split over the 8 cells it lands between, as
-the M1 bundles are), and the moments are folded back only once, for the lookup. Transport is
-linear and each direction keeps its own light, so crossing beams pass through each other and
-light from a diffuse patch spreads as it should; flux is conserved exactly (weights sum to
-one, transmittances <= 1). The lookup's grid is folded into SH bands 0-2 (9 coefficients,
-not KD10's 4): a two-moment lobe cannot tell a beam from the uniform hemisphere of light above
-a lit floor, and read as a lobe that hemisphere has a tail behind it that lights the floor with
-its own light; band 2 tells them apart, and the irradiance kernel is exact to band 2 (lookup.py).
-Light handed on to the next cascade stays 4 moments. Cost per step: 64 directions x 8
-neighbours per cell and colour
-(the M1 step: 27 x 4 x 64). The angular grid is the same Fibonacci sphere as the M1 bundles
-(propagation.quadrature_directions), each direction standing for 4 pi / 64 sr.
+A two-moment cell (KD10's 2-band SH) must fold the light crossing it from all sides into one
+lobe per step; the fold blurs beams, and the error compounds over the ~R steps light travels.
+Here the injected lobe is unfolded once into the quadrature directions (the emission reading of
+closure.emission_density: a VPL's cos lobe), each direction's flux is advected one cell length
+per step semi-Lagrangian (trilinear split over the 8 cells it lands between), and the moments
+are folded back only once, for the lookup. Transport is linear and each direction keeps its
+own light, so crossing beams pass through each other and light from a diffuse patch spreads as
+it should; flux is conserved exactly (weights sum to one, transmittances <= 1). The lookup's
+grid is folded into SH bands 0-2 (9 coefficients, not KD10's 4): a two-moment lobe cannot tell
+a beam from the uniform hemisphere of light above a lit floor, and read as a lobe that
+hemisphere has a tail behind it that lights the floor with its own light; band 2 tells them
+apart, and the irradiance kernel is exact to band 2 (lookup.py). Light handed on to the next
+cascade stays 4 moments. Cost per step: 64 directions x 8 neighbours per cell and colour.
+
+The product solves the limit of infinitely many steps in one sweep (sweep.py); the step
+itself (``advance``, ``propagate_steps``) stays as the reference a stepping backend (the GL
+compute backend) is checked against.
 
 This is the discrete ordinates method of radiative transfer (Chandrasekhar 1960, "Radiative
 Transfer"; on a grid with semi-Lagrangian advection, e.g. Fattal 2009, "Participating media
@@ -27,51 +27,14 @@ illumination using light propagation maps", ACM TOG 28(1)), applied to the LPV's
 
 from __future__ import annotations
 
-import os
-
 import numpy as np
 
 from .. import sh
-from ..runtime import jit
+from ..runtime import jit, pool
 from . import closure
-
-DIRECTIONS = 64  # 128 / 256: sunlit room 0.517 -> 0.501 / 0.496 (1.5x / 2.6x time); session 5, swept
-# and launched, 128: sunlit 0.422 -> 0.410, Cornell spot 0.197 -> 0.195, point room 0.150 -> 0.148
-_TABLES: dict = {}
-
-
-def tables(q: int | None = None):
-    """Directions sorted by octant (q, 3), their SH basis (q, 4), and per octant the slice of
-    its directions and, for each of its 8 neighbour offsets, (offset index into
-    propagation.OFFSETS, offset, trilinear weights (n, 1, 1, 1, 1))."""
-    from . import OFFSETS, quadrature_directions
-
-    q = q or DIRECTIONS
-    if q not in _TABLES:
-        dirs = quadrature_directions(q)
-        octant = ((dirs[:, 0] < 0) * 4 + (dirs[:, 1] < 0) * 2 + (dirs[:, 2] < 0)).astype(int)
-        order = np.argsort(octant, kind="stable")
-        dirs, octant = dirs[order], octant[order]
-        groups = []
-        for o in range(8):
-            idx = np.nonzero(octant == o)[0]
-            if idx.size == 0:
-                continue
-            sign = np.where(dirs[idx[0]] < 0, -1, 1)
-            comp = np.abs(dirs[idx])
-            pairs = []
-            for off in OFFSETS:
-                if any(off[a] not in (0, sign[a]) for a in range(3)):
-                    continue  # no direction of this octant moves that way
-                w = np.prod(np.where(np.array(off) != 0, comp, 1.0 - comp), axis=1)
-                pairs.append((OFFSETS.index(off), off,
-                              w.astype(np.float32)[:, None, None, None, None]))
-            groups.append((slice(int(idx[0]), int(idx[-1]) + 1), pairs))
-        # loop_step writes each octant's slice only: together they must hold every direction
-        assert sum(sl.stop - sl.start for sl, _ in groups) == q
-        _TABLES[q] = (dirs.astype(np.float32), sh.evaluate_basis(dirs).astype(np.float32),
-                      groups)
-    return _TABLES[q]
+from .quadrature import DIRECTIONS, offset_index, offset_visibilities, tables
+from .result import PropagationResult
+from .result import flux as grid_flux
 
 
 def unfold(values: np.ndarray) -> np.ndarray:
@@ -92,12 +55,12 @@ def _unfold_rows(cells: np.ndarray, rows: np.ndarray, dest: np.ndarray,
                  out: np.ndarray) -> None:
     """out[:, dest] = the flux per direction of the moments cells[rows] (rows (n, 4) with band
     0 > 0): closure.moments, then emission_density normalised to each row's flux. Compiled
-    when ``jit.enabled()`` (_unfold_compiled), else numpy; what unfold and unfold_sparse run."""
+    when ``jit.enabled()`` (_unfold_rows_compiled); what unfold and unfold_sparse run."""
     if rows.size == 0:
         return
     dirs = tables()[0]
     if jit.enabled():
-        _unfold_compiled(cells, rows, dest, dirs, out)
+        _unfold_rows_compiled(cells, rows, dest, dirs, out)
         return
     held, mean_cos, d = closure.moments(cells[rows])
     w = closure.emission_density(mean_cos[None, :], dirs @ d.T).astype(np.float32)
@@ -159,7 +122,7 @@ def _unfold_kernel(cells, rows, dest, dirs, out, base):  # pragma: no cover - co
         else:
             vx, vy, vz = zero, zero, zero
         if (r, vx, vy, vz) != last:
-            total = _emission_weights(dirs, r, vx, vy, vz, min(max(r, lo), hi), hi, w)
+            total = _emission_weights_kernel(dirs, r, vx, vy, vz, min(max(r, lo), hi), hi, w)
             last = (r, vx, vy, vz)
         scale = held / total
         for j in range(q):
@@ -167,7 +130,7 @@ def _unfold_kernel(cells, rows, dest, dirs, out, base):  # pragma: no cover - co
 
 
 @jit.kernel
-def _emission_weights(dirs, r, vx, vy, vz, rr, hi, w):  # pragma: no cover - compiled
+def _emission_weights_kernel(dirs, r, vx, vy, vz, rr, hi, w):  # pragma: no cover - compiled
     """w[j] = closure.emission_density of mean cosine r (rr: r clipped to [1/2, hi]) around
     direction v, at dirs[j], in float32 as the numpy code; all 1 where they sum to 0. Returns
     their sum."""
@@ -198,8 +161,8 @@ def _emission_weights(dirs, r, vx, vy, vz, rr, hi, w):  # pragma: no cover - com
     return total
 
 
-def _unfold_compiled(cells, rows, dest, dirs, out, base=None) -> None:
-    """_unfold_kernel over ``rows`` in two halves on ``_pool``'s threads (each writes its own
+def _unfold_rows_compiled(cells, rows, dest, dirs, out, base=None) -> None:
+    """_unfold_kernel over ``rows`` in two halves on the pool's threads (each writes its own
     columns ``dest`` of ``out``): what unfold and launch both run. ``base``: where each
     direction's values start in ``out`` flattened (default: its row of a (q, columns)
     array)."""
@@ -207,15 +170,15 @@ def _unfold_compiled(cells, rows, dest, dirs, out, base=None) -> None:
         base = np.arange(dirs.shape[0]) * out.shape[1]
     flat = out.reshape(-1)
     if out.size and not np.shares_memory(flat, out):
-        raise ValueError("_unfold_compiled needs a contiguous out array")
+        raise ValueError("_unfold_rows_compiled needs a contiguous out array")
     h = rows.size // 2
-    for _ in _pool().map(lambda sl: _unfold_kernel(cells, rows[sl], dest[sl], dirs, flat, base),
+    for _ in pool.executor().map(lambda sl: _unfold_kernel(cells, rows[sl], dest[sl], dirs, flat, base),
                          (slice(0, h), slice(h, None))):
         pass
 
 
 @jit.kernel
-def launch_corners(dx, dy, dz, mx, my, mz):  # pragma: no cover - compiled
+def launch_corners_kernel(dx, dy, dz, mx, my, mz):  # pragma: no cover - compiled
     """Where the launch puts light leaving along (dx, dy, dz) a cell whose emission direction
     is (mx, my, mz): moved LAUNCH_CELLS sideways along the part of d across m, the base
     corner offset (bx, by, bz) in {-1, 0}^3 and the trilinear fractions (fx, fy, fz) towards
@@ -239,14 +202,14 @@ def launch_corners(dx, dy, dz, mx, my, mz):  # pragma: no cover - compiled
 
 @jit.kernel
 def _launch_kernel(flux, m, start, dirs, vis, p, out, j0, j1):  # pragma: no cover - compiled
-    """``launch``'s scatter (compiled) for directions j0 <= j < j1 (``_launch_direction``),
+    """``launch``'s scatter (compiled) for directions j0 <= j < j1 (``_launch_direction_kernel``),
     direction outermost: out[j] (3 (R+2)^3) stays in cache."""
     for j in range(j0, j1):
-        _launch_direction(flux, m, start, dirs, vis, p, out, j)
+        _launch_direction_kernel(flux, m, start, dirs, vis, p, out, j)
 
 
 @jit.kernel
-def _launch_direction(flux, m, start, dirs, vis, p, out, j):  # pragma: no cover - compiled
+def _launch_direction_kernel(flux, m, start, dirs, vis, p, out, j):  # pragma: no cover - compiled
     """``launch``'s scatter of direction j (compiled): lit cell i's flux
     flux[j, 3 i + colour] moves along j, shifted sideways by its emission direction m[i], split
     trilinearly over the 8 cells around, each share times vis[i, offset] (when vis has
@@ -261,7 +224,7 @@ def _launch_direction(flux, m, start, dirs, vis, p, out, j):  # pragma: no cover
         f0, f1, f2 = flux[j, 3 * i], flux[j, 3 * i + 1], flux[j, 3 * i + 2]
         if f0 == zero and f1 == zero and f2 == zero:
             continue  # nothing emitted this way (behind the surface): it would add zeros
-        bx, by, bz, fx, fy, fz = launch_corners(dx, dy, dz, m[i, 0], m[i, 1], m[i, 2])
+        bx, by, bz, fx, fy, fz = launch_corners_kernel(dx, dy, dz, m[i, 0], m[i, 1], m[i, 2])
         corner = start[i] + (bx * p + by) * p + bz
         for cx in range(2):
             wx = fx if cx else one - fx
@@ -279,7 +242,7 @@ def _launch_direction(flux, m, start, dirs, vis, p, out, j):  # pragma: no cover
 
 def _launch_compiled(injected: np.ndarray, offset_visibility: list | None) -> np.ndarray:
     """``launch`` by the compiled kernels: the lit cells' unfold (_unfold_kernel, those cells
-    only) and one scatter loop (_launch_kernel), each in two halves on ``_pool``'s threads
+    only) and one scatter loop (_launch_kernel), each in two halves on the pool's threads
     (Cornell box update, one process A/B: propagation 13.8 -> 12.3 ms; measured no faster
     before heap.py, when page faults dominated)."""
     dirs, _, _ = tables()
@@ -288,23 +251,20 @@ def _launch_compiled(injected: np.ndarray, offset_visibility: list | None) -> np
     out = np.zeros((q, 3, p**3), np.float32)
     inputs = launch_inputs(injected, offset_visibility)
     halves = ((0, q // 2), (q // 2, q))  # disjoint directions: no shared writes
-    for _ in _pool().map(lambda js: _launch_kernel(*inputs, p, out, *js), halves):
+    for _ in pool.executor().map(lambda js: _launch_kernel(*inputs, p, out, *js), halves):
         pass
     return out
 
 
-def launch_inputs(injected: np.ndarray, offset_visibility: list | None,
-                  stacked: np.ndarray | None = None) -> tuple:
-    """What ``_launch_direction`` reads: (flux (q, 3 n) of the n lit cells, cell-major and
+def launch_inputs(injected: np.ndarray, offset_visibility: list | None) -> tuple:
+    """What ``_launch_direction_kernel`` reads: (flux (q, 3 n) of the n lit cells, cell-major and
     colour-minor, their emission directions m (n, 3), padded flat cells (n,), directions
-    (q, 3), transmittances (n, 27) or (n, 0)); n = 0 when nothing is lit. ``stacked``: the
-    same transmittances as sweep.stacked_visibility lays them out ((27, (R+2)^3), padded), read
-    there in one gather instead of 27."""
+    (q, 3), transmittances (n, 27) or (n, 0)); n = 0 when nothing is lit."""
     dirs, _, _ = tables()
     cells, lit, rows = lit_rows(injected)
     flux = np.empty((len(dirs), rows.size), np.float32)  # (q, 3 n): cell-major, colour-minor
-    _unfold_compiled(cells, rows, np.arange(rows.size), dirs, flux)
-    return (flux,) + launch_geometry(cells, lit, injected.shape[0], offset_visibility, stacked)
+    _unfold_rows_compiled(cells, rows, np.arange(rows.size), dirs, flux)
+    return (flux,) + launch_geometry(cells, lit, injected.shape[0], offset_visibility)
 
 
 def lit_rows(injected: np.ndarray) -> tuple:
@@ -318,7 +278,7 @@ def lit_rows(injected: np.ndarray) -> tuple:
 
 
 def launch_geometry(cells: np.ndarray, lit: np.ndarray, r: int,
-                    offset_visibility: list | None, stacked: np.ndarray | None = None) -> tuple:
+                    offset_visibility: list | None) -> tuple:
     """The rest of ``launch_inputs`` for the lit cells of ``lit_rows``: (emission directions
     m (n, 3), padded flat cells (n,), directions (q, 3), transmittances (n, 27) or (n, 0))."""
     p = r + 2
@@ -327,8 +287,6 @@ def launch_geometry(cells: np.ndarray, lit: np.ndarray, r: int,
     start = (ijk[:, 0] * p + ijk[:, 1]) * p + ijk[:, 2]
     if offset_visibility is None:
         vis = np.zeros((lit.size, 0), np.float32)
-    elif stacked is not None:
-        vis = np.ascontiguousarray(stacked[:, start].T)
     else:  # (n, 27): a cell's transmittances side by side
         vis = np.stack([np.asarray(v, np.float32).reshape(-1)[lit] for v in offset_visibility],
                        axis=1)
@@ -340,9 +298,14 @@ def emission_directions(cells: np.ndarray, lit: np.ndarray) -> np.ndarray:
     (``cells`` (R^3 3, 4), as lit_rows gives them): where ``launch`` moves a cell's light
     sideways from. Compiled when ``jit.enabled()`` (the same float32 operations: 32^3
     Cornell box, 0.7 -> 0.02 ms)."""
-    if not jit.enabled():
-        _, _, m = closure.moments(cells.reshape(-1, 3, 4)[lit].sum(axis=1))
-        return np.ascontiguousarray(m, np.float32)
+    if jit.enabled():
+        return _emission_directions_compiled(cells, lit)
+    _, _, m = closure.moments(cells.reshape(-1, 3, 4)[lit].sum(axis=1))
+    return np.ascontiguousarray(m, np.float32)
+
+
+def _emission_directions_compiled(cells: np.ndarray, lit: np.ndarray) -> np.ndarray:
+    """``emission_directions`` by ``_directions_kernel``."""
     out = np.empty((lit.size, 3), np.float32)
     _directions_kernel(cells, lit, out)
     return out
@@ -367,11 +330,6 @@ def _directions_kernel(cells, lit, out):  # pragma: no cover - compiled
             out[e, 0] = out[e, 1] = out[e, 2] = zero
 
 
-def _offset_index(off: np.ndarray) -> np.ndarray:
-    """Index into propagation.OFFSETS of neighbour offsets (..., 3) in {-1, 0, 1}."""
-    return ((off[..., 0] + 1) * 3 + off[..., 1] + 1) * 3 + off[..., 2] + 1
-
-
 LAUNCH_CELLS = 0.5  # injection.inject moves a VPL this far off its surface [KD10 sec. 4.2]
 
 
@@ -388,7 +346,7 @@ def launch(injected: np.ndarray, offset_visibility: list | None = None) -> np.nd
     mean emission direction (the injected lobe's, exact for a cell of one surface
     orientation), trilinearly split over the cells it lands between, each share scaled by the
     transmittance towards its neighbour offset (``offset_visibility``, per
-    propagation.OFFSETS, or None). The sideways shift is capped at half a cell (tan clipped
+    quadrature.OFFSETS, or None). The sideways shift is capped at half a cell (tan clipped
     at 1, beyond 45 degrees from m): a cell-centred grid places light only to within half a
     cell, and a larger shift pushed grazing light from a floor into the walls beside it
     (indirect relative RMSE against Cycles, uncapped: point room 0.149 -> 0.160, sun yard
@@ -436,7 +394,7 @@ def launch(injected: np.ndarray, offset_visibility: list | None = None) -> np.nd
         corners = np.array(list(np.ndindex(2, 2, 2)))  # (8, 3)
         offs = octant_base[None] + corners[:, None]  # (8, q, 3): each direction's offsets
         if vis is not None:
-            w *= vis[_offset_index(offs)]  # (8, q, n)
+            w *= vis[offset_index(offs)]  # (8, q, n)
         dense = np.zeros((8, q, 1, p**3), np.float32)
         dense[:, :, 0, start] = w
         shifts = (offs[..., 0] * p + offs[..., 1]) * p + offs[..., 2]  # (8, q)
@@ -456,7 +414,7 @@ def launch(injected: np.ndarray, offset_visibility: list | None = None) -> np.nd
                 off = bs + c
                 w = np.prod(np.where(c == 1, fr, 1.0 - fr), axis=-1)
                 if vis is not None:
-                    w = w * vis[_offset_index(off), nn]
+                    w = w * vis[offset_index(off), nn]
                 flat = start[nn] + (off[:, 0] * p + off[:, 1]) * p + off[:, 2]
                 for colour in range(3):
                     np.add.at(flat_out, (jj * 3 + colour) * p**3 + flat,
@@ -535,15 +493,20 @@ def _emission_band2_kernel(c, out):  # pragma: no cover - compiled
 def add_emission_band2(values: np.ndarray, injected: np.ndarray) -> None:
     """values (..., 9) += emission_band2(injected (..., 4)), in place; compiled when
     ``jit.enabled()`` (32^3: about 4 ms in numpy, its lit cells' moments in float64)."""
-    if not jit.enabled():
-        values += emission_band2(injected)
+    if jit.enabled():
+        _add_emission_band2_compiled(values, injected)
         return
+    values += emission_band2(injected)
+
+
+def _add_emission_band2_compiled(values: np.ndarray, injected: np.ndarray) -> None:
+    """``add_emission_band2`` by ``_emission_band2_kernel``, row by row."""
     c = np.ascontiguousarray(injected, np.float32).reshape(-1, 4)
     out = values.reshape(-1, sh.BANDS2)
     if not np.shares_memory(out, values):
         raise ValueError("add_emission_band2 needs a contiguous values array")
     # rows are independent: two halves on the pool (32^3: 0.34 -> ~0.2 ms), the same bits
-    in_halves(lambda sl: _emission_band2_kernel(c[sl], out[sl]), c.shape[0], 8192)
+    pool.in_halves(lambda sl: _emission_band2_kernel(c[sl], out[sl]), c.shape[0], 8192)
 
 
 def pad(flux: np.ndarray) -> np.ndarray:
@@ -597,8 +560,8 @@ FACTOR_TABLE_BYTES = 128 * 2**20  # above this (R > ~36), weights and transmitta
 def factors(r: int, offset_visibility: list | None = None) -> list:
     """Per octant: (direction slice, [(flat shift, weights (n, 1, 1), transmittance (1, 1, L)
     or None)]) for ``advance`` on an R^3 grid. ``offset_visibility``: per
-    propagation.OFFSETS entry the (R, R, R) transmittance from each source cell towards that
-    neighbour (propagation._offset_visibilities), or None. While the table stays under
+    quadrature.OFFSETS entry the (R, R, R) transmittance from each source cell towards that
+    neighbour (quadrature.offset_visibilities), or None. While the table stays under
     FACTOR_TABLE_BYTES the two are multiplied here once (one multiply per step instead of two;
     8 q (R + 2)^3 floats: 12 MB at 16^3, 80 MB at 32^3)."""
     _, _, groups = tables()
@@ -621,36 +584,6 @@ def factors(r: int, offset_visibility: list | None = None) -> list:
                 row.append((shift, weight, padded[k_off]))
         out.append((sl, row))
     return out
-
-
-_POOL: list = []  # [ThreadPoolExecutor] once created
-
-
-def _pool():
-    """Threads for the octants of a step: each octant writes only its own directions, and
-    numpy releases the GIL inside its loops, so octants run in parallel (measured on this
-    2-core machine: a 16^3 step 11.0 -> 7.7 ms, 32^3 57 -> 41 ms)."""
-    if not _POOL:
-        from concurrent.futures import ThreadPoolExecutor
-
-        _POOL.append(ThreadPoolExecutor(pool_workers(), thread_name_prefix="lpv-octant"))
-    return _POOL[0]
-
-
-def in_halves(run, n: int, smallest: int = 4096) -> None:
-    """run(slice) over 0..n: below ``smallest`` in one call here, else in two halves on
-    ``_pool``'s threads (for kernels that release the GIL and write disjoint parts);
-    iterating re-raises a half's exception here."""
-    if n < smallest:
-        run(slice(0, n))
-        return
-    for _ in _pool().map(run, (slice(0, n // 2), slice(n // 2, n))):
-        pass
-
-
-def pool_workers() -> int:
-    """The threads of ``_pool``: one per core, at most 8 (the octants)."""
-    return max(1, min(8, os.cpu_count() or 1))
 
 
 def _advance_octant(src: np.ndarray, row: list, out: np.ndarray) -> None:
@@ -676,9 +609,9 @@ def advance(flat: np.ndarray, factor_table: list) -> np.ndarray:
     those that left the grid in the shell (take_shell). ``factor_table``: ``factors`` for this
     grid and visibility. Per octant only the flat range of cells holding its light is read
     (light reflected by a lit floor alone never travels down: half the octants stay empty).
-    Octants run on a thread pool (``_pool``); each writes only its own slice of directions."""
+    Octants run on the thread pool (runtime/pool.py); each writes only its own slice of directions."""
     out = np.zeros_like(flat)
-    for _ in _pool().map(lambda item: _advance_octant(flat[item[0]], item[1], out[item[0]]),
+    for _ in pool.executor().map(lambda item: _advance_octant(flat[item[0]], item[1], out[item[0]]),
                          factor_table):  # iterating re-raises an octant's exception here
         pass
     return out
@@ -686,7 +619,7 @@ def advance(flat: np.ndarray, factor_table: list) -> np.ndarray:
 
 def loop_step(flat: np.ndarray, factor_table: list, r: int, acc: np.ndarray,
               outflow: np.ndarray | None = None) -> tuple[np.ndarray, float]:
-    """One step of the propagation loop (propagation.propagate, angular="dom"): advance,
+    """One step of ``propagate_steps``' loop: advance,
     move what left the grid to ``outflow`` (or drop it), add the arrivals to ``acc``.
     Returns the new light and the flux it holds (float64 sum: the early-stop test).
     A direction's light stays in its octant's slice, so each octant does all of this for its
@@ -702,16 +635,86 @@ def loop_step(flat: np.ndarray, factor_table: list, r: int, acc: np.ndarray,
         acc[sl] += out
         return float(out.sum(dtype=np.float64))
 
-    moved = sum(_pool().map(octant, factor_table))
+    moved = sum(pool.executor().map(octant, factor_table))
     return nxt, moved
 
 
 def step(flux: np.ndarray, offset_visibility: list | None = None) -> np.ndarray:
     """Advect every direction's flux one cell length: (q, 3, R, R, R) -> the same (light that
-    would land outside the grid leaves it). ``offset_visibility``: per propagation.OFFSETS
+    would land outside the grid leaves it). ``offset_visibility``: per quadrature.OFFSETS
     entry the (R, R, R) transmittance from each source cell towards that neighbour
-    (propagation._offset_visibilities), or None. The propagation itself stays in the padded
+    (quadrature.offset_visibilities), or None. The propagation itself stays in the padded
     layout between steps (``advance``)."""
     r = flux.shape[-1]
     out = advance(pad(flux), factors(r, offset_visibility))
     return np.ascontiguousarray(interior(out, r))
+
+
+def first_arrivals(injected: np.ndarray, visibility: np.ndarray | None,
+                   occlude_first_step: bool, passing: np.ndarray | None = None):
+    """(arrivals, total): the first step of ``injected`` launched from its surfaces
+    (``launch``) plus the plain first step of ``passing``, in the padded flat layout
+    (q, 3, (R+2)^3; the shell holds what left), and the grid both came from (their sum):
+    where a stepping backend takes over the steps after the launch."""
+    r = injected.shape[0]
+    offvis = offset_visibilities(visibility)
+    arrivals = launch(injected, offvis if occlude_first_step else None)
+    if passing is None:
+        return arrivals, injected
+    table = factors(r, offvis if occlude_first_step else None)
+    arrivals += advance(pad(unfold(passing)), table)
+    return arrivals, injected + passing
+
+
+def propagate_steps(injected: np.ndarray, iterations: int, min_fraction: float = 1e-3,
+                    visibility: np.ndarray | None = None, occlude_first_step: bool = False,
+                    capture_outflow: bool = False, launch: bool = False,
+                    passing: np.ndarray | None = None) -> PropagationResult:
+    """The discrete-ordinates propagation taken ``iterations`` steps at a time, stopping once
+    a step carries less than ``min_fraction`` of the unfolded flux: the numpy reference of a
+    stepping backend (the GL compute backend); the product solves the limit of infinitely
+    many steps instead (sweep.propagate). The injected lobes are unfolded once into flux per
+    direction, advected step by step in the padded flat layout (``loop_step``), and folded back
+    into bands 0-2 once at the end. What lands in the layout's shell left the grid: with
+    ``capture_outflow`` it is kept as ``outflow`` ((R+2)^3 grid, 4 moments). With ``launch``
+    the first step of ``injected`` is ``launch`` (``passing`` steps plainly); otherwise the
+    two are one grid. The first step ignores ``visibility`` unless ``occlude_first_step``."""
+    r = injected.shape[0]
+    check_memory(r, capture_outflow)
+    total = injected if passing is None else injected + passing
+    offvis = offset_visibilities(visibility)
+    free = factors(r)
+    occluded = free if visibility is None else factors(r, offvis)
+    acc = np.zeros((DIRECTIONS, 3, (r + 2) ** 3), np.float32)
+    outflow = np.zeros_like(acc) if capture_outflow else None
+    done = 0
+    if launch:
+        cur, _ = first_arrivals(injected, visibility, occlude_first_step, passing)
+        total0 = float(unfold(total).sum(dtype=np.float64))
+        if total0 > 0 and iterations > 0:
+            take_shell(cur, r, outflow)
+            acc += cur
+            done = 1
+            moved = float(cur.sum(dtype=np.float64))
+    else:
+        cur = pad(unfold(total))
+        total0 = float(cur.sum(dtype=np.float64))
+    fraction = 1.0 if total0 > 0 else 0.0
+    early = total0 <= 0
+    if done:
+        fraction = moved / total0
+        early = fraction < min_fraction
+    for _ in range(0 if early else max(int(iterations) - done, 0)):
+        table = occluded if (done > 0 or occlude_first_step) else free
+        cur, moved = loop_step(cur, table, r, acc, outflow)
+        done += 1
+        fraction = moved / total0
+        if fraction < min_fraction:
+            early = True
+            break
+    values = fold(np.ascontiguousarray(interior(acc, r)), sh.BANDS2)
+    add_emission_band2(values, total)
+    if outflow is not None:
+        q = outflow.shape[0]
+        outflow = fold(outflow.reshape(q, 3, r + 2, r + 2, r + 2))
+    return PropagationResult(values, done, grid_flux(total), fraction, early, outflow)

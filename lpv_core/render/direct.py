@@ -11,8 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..propagation import ordinates
-from ..runtime import jit
+from ..runtime import jit, pool
 from ..scene import lights as lights_mod
 from ..scene.model import Light
 from .raster import Rasterizer
@@ -182,7 +181,7 @@ def _irradiance_compiled(light: Light, positions: np.ndarray, normals: np.ndarra
     args = (kind, np.asarray(light.position, np.float64), np.asarray(light.direction, np.float64),
             float(light.power), cos_half, smooth, mats, ortho, scale, depths, face_view, single,
             res, pos, nrm, out)
-    ordinates.in_halves(lambda sl: _direct_kernel(*args, sl.start, sl.stop), pos.shape[0])
+    pool.in_halves(lambda sl: _direct_kernel(*args, sl.start, sl.stop), pos.shape[0])
     return out
 
 

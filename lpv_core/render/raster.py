@@ -67,8 +67,7 @@ void main() {
 
 # The reflective shadow map's own pass: position and normal only, and the triangle's index
 # (gl_PrimitiveID, split into two exactly representable floats) instead of a reflectance target:
-# two targets instead of four, measured 2.5 -> 1.6 ms for a 256^2 map on llvmpipe. Position and
-# normal are the main pass's expressions (the same bits); the reflectance comes from the
+# two targets instead of four. Position and normal are the main pass's expressions (the same bits); the reflectance comes from the
 # uploaded per-triangle table (the main pass's target interpolates it: 0.8 reads 0.79999995).
 RSM_VERTEX_SHADER = """
 #version 330
@@ -316,8 +315,7 @@ class Rasterizer:
         """The covered pixels of a camera view, as ``render`` gives them at frame.covered
         (the same numbers, pixels in row-major order, rows top-first): (covered (H, W) bool,
         world positions (M, 3) float64, normals (M, 3) float64, albedo (M, 3) float32,
-        receiver flags (M,) bool). Converts only what is covered, not whole frames: 1280x720
-        45 -> ~15 ms besides the draw and the readback."""
+        receiver flags (M,) bool). Converts only what is covered, not whole frames."""
         pos4, nrm4, alb4 = self.read(view, projection, width, height, False, (0, 1, 2))
         covered = pos4[..., 3] > 0.5
         pos = pos4[covered][:, :3].astype(np.float64) + self.origin

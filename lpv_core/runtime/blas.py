@@ -3,10 +3,8 @@
 
 After each multi-threaded call (the fold to SH is one matrix product per cascade) OpenBLAS
 keeps its worker threads spinning on sched_yield for a while, and an update calls it again
-before they sleep: on this 2-core VM they took 16-26 ms of system time per Cornell box update
-(getrusage), competing with the compiled kernels for the two cores. With one BLAS thread:
-~1 ms of system time, the update 30.0 -> 23.5 ms in one measurement (alternating runs, the
-same build). The product itself then runs on one core: at 16^3, ~1 ms.
+before they sleep, so they compete with the compiled kernels for the cores (the figures are in
+docs/decisions.md). The fold itself runs well on one core.
 
 The engine runs in its own process (the batch CLI, the live worker), so Blender's own numpy
 is untouched. Only OpenBLAS is handled (numpy's wheels on Linux, Windows and macOS bundle it,

@@ -3,9 +3,8 @@ multi-megabyte arrays each time (the launch and sweep light, the RSM's VPLs), an
 C allocator hands back to the OS comes back as fresh pages, each zero-filled on first touch.
 
 glibc serves a block above its mmap threshold with its own mapping and unmaps it on free, and
-trims the heap's free top above its trim threshold. Measured on the Cornell box full update
-(python -m tools.bench --quick, this 2-core VM): ~2,850 page faults per update (3.5 us
-each here), 35-37 ms; with both thresholds raised, ~80 faults, 25 ms (propagation 20 -> 9 ms).
+trims the heap's free top above its trim threshold: every update then page-faults its big
+arrays in again (docs/decisions.md has the figures); both thresholds are raised here.
 The engine runs in its own process (the batch CLI, the live worker), so the setting touches
 nothing of Blender's; elsewhere than glibc it does nothing. The cost: the process keeps its
 peak heap, which the next update needs again anyway.

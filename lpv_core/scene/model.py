@@ -104,12 +104,12 @@ class GISettings:
     grid_resolution: int = 16
     cascades: int = 3  # at most this many; with cascades_auto the planner picks per view
     cascades_auto: bool = True  # planner.cascade_count: 1 for an enclosed view, more if open
-    iterations: int = 0  # 0: automatic (engine.auto_iterations)
-    reprojection: str = "kd10"  # side-face re-emission: "kd10" (paper) or "ray"
-    # Transport: "dom" flux along 64 directions (ordinates.py), "m1" a max-entropy lobe per
-    # cell (closure.py), "sh" the clamped 2-band SH (KD10)
+    # Propagation steps of "sh" (0: automatic, engine.auto_iterations). "dom" always solves
+    # the limit of infinitely many steps in one sweep and ignores it.
+    iterations: int = 0
+    # Transport (propagation/): "dom" flux along 64 directions, swept to convergence (the
+    # product); "sh" KD10's clamped 2-band SH (the baseline)
     angular: str = "dom"
-    direction_groups: int = 1  # 6: propagate VPLs of each facing apart (see engine); 1: together
     rsm_resolution: int = 256
     occlusion: bool = True
     bounces: int = 1
@@ -120,19 +120,42 @@ class GISettings:
     # filter): 1 = one sample at the centre. Output only: the LPV does not depend on it.
     antialias: int = 2
 
+    def __post_init__(self) -> None:
+        if self.angular not in ANGULAR_MODELS:
+            raise ValueError(_angular_error(self.angular))
+
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)
 
     def updated(self, **changes) -> GISettings:
-        """A copy with ``changes`` applied; unknown keys raise ValueError naming the key."""
+        """A copy with ``changes`` applied; unknown keys raise ValueError naming the key, a
+        retired setting or transport model a ValueError saying what to use instead."""
         known = {f.name: f for f in dataclasses.fields(self)}
         values = {}
         for key, value in changes.items():
+            if key in RETIRED_SETTINGS:
+                raise ValueError(f"GI setting '{key}' was retired: {RETIRED_SETTINGS[key]}")
             if key not in known:
                 raise ValueError(f"unknown GI setting '{key}' (known: {', '.join(sorted(known))})")
             current = getattr(self, key)
             values[key] = _coerce(key, value, current)
         return dataclasses.replace(self, **values)
+
+
+ANGULAR_MODELS = ("dom", "sh")  # propagation.ANGULAR_MODELS
+RETIRED_SETTINGS = {
+    "reprojection": "KD10's re-projection (side faces re-emit along their normal) is the only "
+                    "one; remove the setting",
+    "direction_groups": "the discrete-ordinates transport (angular='dom') keeps directions "
+                        "apart by itself; remove the setting",
+}
+RETIRED_ANGULAR = {"m1": "the maximum-entropy transport 'm1' was retired"}
+
+
+def _angular_error(value) -> str:
+    why = RETIRED_ANGULAR.get(value, f"unknown transport model {value!r}")
+    return (f"GI setting 'angular': {why}; use 'dom' (discrete ordinates, the default) or "
+            "'sh' (KD10's clamped SH, the baseline)")
 
 
 def _coerce(key: str, value, current):

@@ -13,7 +13,7 @@ from contextlib import contextmanager
 import bpy
 import numpy as np
 
-from ._core import core
+from .._core import core
 
 MESH_LIKE = frozenset({"MESH", "CURVE", "SURFACE", "FONT", "META"})
 # Object types with geometry we cannot triangulate (hair curves, point clouds, volumes, ...).

@@ -6,8 +6,6 @@ import bpy
 import numpy as np
 from mathutils import Matrix
 
-from ._core import core
-
 
 def _material(m) -> bpy.types.Material:
     mat = bpy.data.materials.new(m.name)
@@ -92,4 +90,4 @@ def build(scene_core, name: str = "LPV Scene") -> bpy.types.Scene:
     return scn
 
 
-__all__ = ["build", "core"]
+__all__ = ["build"]

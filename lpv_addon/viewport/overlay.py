@@ -1,22 +1,19 @@
 """Viewport overlay: the LPV drawn with Blender's ``gpu`` module in a SpaceView3D handler.
 
 How it shades (our choice, per fragment rather than per vertex): each cascade's combined LPV
-is uploaded as seven 3D textures (RGBA16F, scaled by the grid's largest magnitude so half
-floats keep their relative precision): per colour channel one with SH coefficients 0-3 (bands
-0-1) and one with coefficients 4-7 (band 2), and one whose RGB is coefficient 8 of the three
-colours (the band-2 textures hold zeros for a 4-coefficient grid), plus its propagation
+(9 SH coefficients per colour, bands 0-2) is uploaded as seven 3D textures (RGBA16F, scaled by
+the grid's largest magnitude so half floats keep their relative precision): per colour channel
+one with SH coefficients 0-3 (bands 0-1) and one with coefficients 4-7 (band 2), and one whose
+RGB is coefficient 8 of the three colours, plus its propagation
 visibility (two RGB 3D textures: transmittance towards +x+y+z and -x-y-z) and its occluders'
 cell gaps (two RGB 3D textures, geometry_volume.cell_gaps: slab depths below the +x+y+z faces
-and above the -x-y-z faces); 12 samplers per draw, one draw per cascade. A fragment shader
+and above the -x-y-z faces); 11 samplers per draw, one draw per cascade. A fragment shader
 repeats ``lpv_core.lookup.irradiance`` for every pixel of the extracted scene geometry: sample
 half a cell along the viewer-facing normal, moved out of the slabs an occluder's face plane cut
 off (``lookup.sample_points`` / ``gap_corrected``; skipped for a cascade without gaps),
 trilinear over the 8 nearest cells (zero outside the grid) leaving out corners behind
-occluders and renormalising (``injection.visible_corners``), then per grid format: a
-9-coefficient grid (``angular="dom"``) with the irradiance kernel of ``sh.irradiance_weights``
-/ s^2, a 4-coefficient one with the clamped-SH cosine convolution x 12/7 / s^2 ("sh") or the
-"m1" closure read through a table ("m1", 4-coefficient "dom"); clamp at zero; cascades add
-up. Indirect radiance = irradiance / pi x albedo, 0 where ``gi_receiver`` is off. Per-vertex
+occluders and renormalising (``injection.visible_corners``), then the irradiance kernel of
+``sh.irradiance_weights`` / s^2; clamp at zero; cascades add up. Indirect radiance = irradiance / pi x albedo, 0 where ``gi_receiver`` is off. Per-vertex
 shading would blur the LPV over large polygons (a Cornell wall is one quad). Transition areas are multiplied into the
 uploaded grids per cell (exact inside a box and far from it; the falloff is resolved at cell
 size), clip areas act in propagation and in the visibility already.
@@ -24,7 +21,7 @@ size), clip areas act in propagation and in the visibility already.
 Modes (``Scene.lpv.overlay_mode``): ADD (indirect added on top of the viewport shading, for
 EEVEE material preview or solid mode), INDIRECT (indirect only), and debug views: CASCADES
 (grid bounds), VPLS (a VPL sample, coloured by flux), PROBES (each cell's SH as a glyph whose
-radius is the intensity towards that direction, from all 4 or 9 coefficients) and OCCLUSION (points on the cell faces where
+radius is the intensity towards that direction, from all 9 coefficients) and OCCLUSION (points on the cell faces where
 propagation is blocked: the geometry volume's occlusion times clip areas, white to red).
 The viewport's colours are linear; the view transform (AgX, Filmic) of the viewport shading is
 not applied to the overlay, so ADD is exact with the Standard transform.
@@ -37,15 +34,16 @@ import numpy as np
 from gpu_extras.batch import batch_for_shader
 from mathutils import Matrix
 
+from .._core import core
 from . import live
 
 _SHADERS: dict = {}
 _RESOURCES: dict = {}  # key -> GPU objects (textures, batches), freed with free_resources()
 _HANDLES: list = []  # draw handler of SpaceView3D (at most one)
 
-# Fragment shader samplers, by slot (12 per draw of a cascade; OpenGL 4.3 guarantees 16).
-SAMPLERS = ("lpv_r", "lpv_g", "lpv_b", "vis_plus", "vis_minus", "cos_table", "lpv_r2", "lpv_g2",
-            "lpv_b2", "lpv_c8", "gaps_plus", "gaps_minus")
+# Fragment shader samplers, by slot (11 per draw of a cascade; OpenGL 4.3 guarantees 16).
+SAMPLERS = ("lpv_r", "lpv_g", "lpv_b", "vis_plus", "vis_minus", "lpv_r2", "lpv_g2", "lpv_b2",
+            "lpv_c8", "gaps_plus", "gaps_minus")
 
 VERTEX_SOURCE = """
 void main() {
@@ -58,30 +56,12 @@ void main() {
 
 FRAGMENT_SOURCE = """
 const float PI = 3.14159265358979;
-const float C0 = 0.886226925452758;       /* sqrt(pi)/2: clamped cosine, band 0 */
-const float C1 = 1.0233267079464885;      /* sqrt(pi/3): clamped cosine, band 1 */
-const float GAIN = 1.7142857142857142;    /* 12/7: undoes re-projection smoothing */
-const float SQRT_4PI = 3.5449077018110318;
-const float FLUX_B1 = 2.0466534158929770; /* Y1 4 pi / 3: net flux from band 1 */
-const float MAX_R = 0.995;
 /* sh.irradiance_weights: Y(-n) x (pi, 2 pi / 3, pi / 4) per band */
 const float K0 = 0.886226925452758;       /* pi Y0 */
 const float K1 = 1.0233267079464885;      /* 2 pi / 3 Y1 */
 const float K2A = 0.8580855308097834;     /* pi / 4 Y2A */
 const float K2B = 0.2477079561003757;     /* pi / 4 Y2B */
 const float K2C = 0.4290427654048917;     /* pi / 4 Y2C */
-
-float m1_irradiance(vec4 s, vec3 n) {
-    float held = max(s.x, 0.0) * SQRT_4PI;
-    vec3 v = vec3(-s.w, -s.y, s.z) * FLUX_B1;
-    float len_v = length(v);
-    float r = held > 0.0 ? clamp(len_v / held, 0.0, MAX_R) : 0.0;
-    vec3 d = len_v > 0.0 ? v / len_v : vec3(0.0);
-    float t = -dot(d, n);
-    vec2 size = vec2(textureSize(cos_table, 0));
-    vec2 uv = vec2((t + 1.0) * 0.5 * (size.x - 1.0) + 0.5, r / MAX_R * (size.y - 1.0) + 0.5);
-    return held * texture(cos_table, uv / size).r;
-}
 
 void main() {
     int res = int(params.x);
@@ -136,7 +116,6 @@ void main() {
     vec4 sg2 = vec4(0.0);
     vec4 sb2 = vec4(0.0);
     vec3 s8 = vec3(0.0);   /* coefficient 8 of r, g, b */
-    bool band2 = view_dir.w > 1.5;
     float w_all = 0.0;
     float w_seen = 0.0;
     for (int k = 0; k < 8; k++) {
@@ -156,12 +135,10 @@ void main() {
         sr += w * texelFetch(lpv_r, i, 0);
         sg += w * texelFetch(lpv_g, i, 0);
         sb += w * texelFetch(lpv_b, i, 0);
-        if (band2) {
-            sr2 += w * texelFetch(lpv_r2, i, 0);
-            sg2 += w * texelFetch(lpv_g2, i, 0);
-            sb2 += w * texelFetch(lpv_b2, i, 0);
-            s8 += w * texelFetch(lpv_c8, i, 0).xyz;
-        }
+        sr2 += w * texelFetch(lpv_r2, i, 0);
+        sg2 += w * texelFetch(lpv_g2, i, 0);
+        sb2 += w * texelFetch(lpv_b2, i, 0);
+        s8 += w * texelFetch(lpv_c8, i, 0).xyz;
     }
     float renorm = w_seen > 0.0 ? params.z * w_all / w_seen : 0.0;
     sr *= renorm;
@@ -171,22 +148,12 @@ void main() {
     sg2 *= renorm;
     sb2 *= renorm;
     s8 *= renorm;
-    vec3 e;
-    if (band2) {
-        vec4 w01 = vec4(K0, K1 * n.y, -K1 * n.z, K1 * n.x);  /* band 1 is odd: Y(-n) */
-        vec4 w2 = vec4(K2A * n.x * n.y, K2A * n.y * n.z, K2B * (3.0 * n.z * n.z - 1.0),
-                       K2A * n.x * n.z);
-        float w8 = K2C * (n.x * n.x - n.y * n.y);
-        e = vec3(dot(sr, w01) + dot(sr2, w2), dot(sg, w01) + dot(sg2, w2),
-                 dot(sb, w01) + dot(sb2, w2)) + s8 * w8;
-    }
-    else if (view_dir.w > 0.5) {
-        e = vec3(m1_irradiance(sr, n), m1_irradiance(sg, n), m1_irradiance(sb, n));
-    }
-    else {
-        vec4 lobe = vec4(C0, C1 * n.y, -C1 * n.z, C1 * n.x); /* cosine lobe around -n */
-        e = vec3(dot(sr, lobe), dot(sg, lobe), dot(sb, lobe)) * GAIN;
-    }
+    vec4 w01 = vec4(K0, K1 * n.y, -K1 * n.z, K1 * n.x);  /* band 1 is odd: Y(-n) */
+    vec4 w2 = vec4(K2A * n.x * n.y, K2A * n.y * n.z, K2B * (3.0 * n.z * n.z - 1.0),
+                   K2A * n.x * n.z);
+    float w8 = K2C * (n.x * n.x - n.y * n.y);
+    vec3 e = vec3(dot(sr, w01) + dot(sr2, w2), dot(sg, w01) + dot(sg2, w2),
+                  dot(sb, w01) + dot(sb2, w2)) + s8 * w8;
     e = max(e, vec3(0.0)) / (cell * cell);
     vec3 radiance = e / PI * v_col.rgb * v_col.a;
     FragColor = vec4(radiance * params.y, 1.0);
@@ -210,11 +177,11 @@ def _lpv_shader():
         info.push_constant("VEC4", "grid")  # origin xyz, cell size
         info.push_constant("VEC4", "params")  # resolution, weight, value scale, use visibility
         info.push_constant("VEC4", "eye")  # eye position, 1 if orthographic
-        info.push_constant("VEC4", "view_dir")  # view direction; 0 "sh", 1 "m1", 2 9 coeffs
+        info.push_constant("VEC4", "view_dir")  # view direction (orthographic views)
         info.push_constant("FLOAT", "nudge")  # deferred.toward_viewer's distance
         info.push_constant("FLOAT", "use_gaps")  # 1: move sample points (gap_corrected)
         for slot, name in enumerate(SAMPLERS):
-            info.sampler(slot, "FLOAT_2D" if name == "cos_table" else "FLOAT_3D", name)
+            info.sampler(slot, "FLOAT_3D", name)
         info.fragment_out(0, "VEC4", "FragColor")
         info.vertex_source(VERTEX_SOURCE)
         info.fragment_source(FRAGMENT_SOURCE)
@@ -232,24 +199,22 @@ LPV_SAMPLERS = ("lpv_r", "lpv_g", "lpv_b", "lpv_r2", "lpv_g2", "lpv_b2", "lpv_c8
 
 
 def lpv_textures(grid, values: np.ndarray):
-    """RGBA16F 3D textures of an (R, R, R, 3, K) grid, K = 4 or 9, and the scale the values
-    were divided by (the largest magnitude). Three textures (R, G, B channel; RGBA = SH
-    coefficients 0-3) for K = 4; for K = 9 four more, in ``LPV_SAMPLERS`` order: coefficients
-    4-7 of the R, G, B channel and one whose RGB is coefficient 8 of R, G, B. Texture data is
-    C-order (z, y, x, c); our grid is [x, y, z]."""
+    """RGBA16F 3D textures of an (R, R, R, 3, 9) grid and the scale the values were divided by
+    (the largest magnitude), in ``LPV_SAMPLERS`` order: SH coefficients 0-3 of the R, G, B
+    channel, coefficients 4-7 of the R, G, B channel, and one whose RGB is coefficient 8 of
+    R, G, B. Texture data is C-order (z, y, x, c); our grid is [x, y, z]."""
     r = grid.resolution
     k = values.shape[-1]
-    if k not in (4, live.core.sh.BANDS2):
-        raise ValueError(f"LPV grid with {k} SH coefficients (4 or 9 expected)")
+    if k != core.sh.BANDS2:
+        raise ValueError(f"LPV grid with {k} SH coefficients ({core.sh.BANDS2} expected)")
     scale = float(np.abs(values).max()) if values.size else 0.0
     scale = scale if scale > 0 and np.isfinite(scale) else 1.0
-    zyx = np.asarray(values, np.float32).transpose(2, 1, 0, 3, 4) / scale  # (z, y, x, 3, K)
+    zyx = np.asarray(values, np.float32).transpose(2, 1, 0, 3, 4) / scale  # (z, y, x, 3, 9)
     texs = [_texture((r, r, r), "RGBA16F", zyx[:, :, :, ch, 0:4]) for ch in range(3)]
-    if k == live.core.sh.BANDS2:
-        texs += [_texture((r, r, r), "RGBA16F", zyx[:, :, :, ch, 4:8]) for ch in range(3)]
-        last = np.zeros((r, r, r, 4), np.float32)
-        last[..., :3] = zyx[..., 8]
-        texs.append(_texture((r, r, r), "RGBA16F", last))
+    texs += [_texture((r, r, r), "RGBA16F", zyx[:, :, :, ch, 4:8]) for ch in range(3)]
+    last = np.zeros((r, r, r, 4), np.float32)
+    last[..., :3] = zyx[..., 8]
+    texs.append(_texture((r, r, r), "RGBA16F", last))
     return texs, scale
 
 
@@ -321,19 +286,14 @@ def _result_resources(result):
         out = []
         gaps = getattr(result, "gaps", None) or {}
         for grid, values, visibility in levels(result):
-            values = live.core.areas.apply_transition_to_grid(grid, values, result.areas)
+            values = core.areas.apply_transition_to_grid(grid, values, result.areas)
             texs, scale = lpv_textures(grid, values)
             out.append({"grid": grid, "textures": texs, "scale": scale,
-                        "coefficients": int(values.shape[-1]),
                         "visibility": visibility_textures(grid, visibility),
                         "gaps": gap_textures(grid, gaps.get(grid))})
-        table = result.cosine_table
-        if table is None:
-            table = np.zeros((2, 2), np.float32)
         ones = _texture((1, 1, 1), "RGBA16F", np.ones(4, np.float32))
         zeros = _texture((1, 1, 1), "RGBA32F", np.zeros(4, np.float32))  # no slabs
-        return {"levels": out, "ones": ones, "zeros": zeros, "batch": _geometry_batch(result),
-                "cos_table": _texture((table.shape[1], table.shape[0]), "R32F", table)}
+        return {"levels": out, "ones": ones, "zeros": zeros, "batch": _geometry_batch(result)}
 
     return _resource(("result", result.serial), make)
 
@@ -368,10 +328,7 @@ def _draw_indirect(result, mvp: Matrix, eye4, view_dir4, weight: float,
         return
     res = _result_resources(result)
     shader = _lpv_shader()
-    # lookup.irradiance: 9 coefficients read with the irradiance kernel (2) whatever the
-    # model, 4 as the max-entropy lobe (1: "m1", "dom") or the clamped SH (0: "sh")
-    lobe = getattr(result.settings, "angular", "sh") in live.core.propagation.closure.LOBE_MODELS
-    nudge = live.core.render.deferred.VIEWER_NUDGE_CELLS * min(lv["grid"].cell_size
+    nudge = core.render.deferred.VIEWER_NUDGE_CELLS * min(lv["grid"].cell_size
                                                       for lv in res["levels"])
     for i, level in enumerate(res["levels"]):
         gpu.state.blend_set(first_blend if i == 0 else "ADDITIVE")
@@ -383,18 +340,15 @@ def _draw_indirect(result, mvp: Matrix, eye4, view_dir4, weight: float,
         shader.uniform_float("params", (float(g.resolution), float(weight), level["scale"],
                                         0.0 if vis is None else 1.0))
         shader.uniform_float("eye", eye4)
-        mode = 2.0 if level["coefficients"] == live.core.sh.BANDS2 else (1.0 if lobe else 0.0)
-        shader.uniform_float("view_dir", (*view_dir4[:3], mode))
+        shader.uniform_float("view_dir", view_dir4)
         shader.uniform_float("nudge", nudge)
         gaps = level["gaps"]
         shader.uniform_float("use_gaps", 0.0 if gaps is None else 1.0)
-        texs = level["textures"]
-        for j, name in enumerate(LPV_SAMPLERS):  # a 4-coefficient grid never reads band 2
-            shader.uniform_sampler(name, texs[j] if j < len(texs) else res["ones"])
+        for name, tex in zip(LPV_SAMPLERS, level["textures"]):
+            shader.uniform_sampler(name, tex)
         plus, minus = vis if vis is not None else (res["ones"], res["ones"])
         shader.uniform_sampler("vis_plus", plus)
         shader.uniform_sampler("vis_minus", minus)
-        shader.uniform_sampler("cos_table", res["cos_table"])
         g_plus, g_minus = gaps if gaps is not None else (res["zeros"], res["zeros"])
         shader.uniform_sampler("gaps_plus", g_plus)
         shader.uniform_sampler("gaps_minus", g_minus)
@@ -476,13 +430,14 @@ def _sphere(subdivisions: int = 2) -> tuple[np.ndarray, np.ndarray]:
 
 def probe_glyphs(grid, values: np.ndarray, max_probes: int = 1500):
     """Triangles (N, 3) and colours (N, 4) of SH glyphs on an even lattice of cells: the
-    radius towards w is the intensity max(0, <I, Y(w)>) (its shape per probe) with all of the
-    grid's coefficients (4, or 9 with band 2 for a discrete-ordinates grid: sharper lobes), the
-    glyph size grows with the cube root of the probe's flux, coloured by the intensity's
+    radius towards w is the intensity max(0, <I, Y(w)>) (its shape per probe) with all 9 of
+    the grid's coefficients (band 2 sharpens the lobes), the glyph size grows with the cube root of the probe's flux, coloured by the intensity's
     colour."""
     dirs, faces = _sphere(2)
     k = values.shape[-1]
-    basis = live.core.sh.evaluate_basis2(dirs)[:, :k]  # (D, K)
+    if k != core.sh.BANDS2:
+        raise ValueError(f"LPV grid with {k} SH coefficients ({core.sh.BANDS2} expected)")
+    basis = core.sh.evaluate_basis2(dirs)  # (D, 9)
     r = grid.resolution
     flat = values.reshape(-1, 3, k)
     energy = np.maximum(flat[:, :, 0].mean(axis=1), 0.0)
@@ -540,7 +495,7 @@ def blocked_faces(grid, visibility: np.ndarray, threshold: float = 0.02):
     vis = np.asarray(visibility, np.float32)
     blocked = 1.0 - vis
     pos, col = [], []
-    for i, d in enumerate(live.core.propagation.AXES):
+    for i, d in enumerate(core.propagation.AXES):
         idx = np.argwhere(blocked[i] > threshold)
         if idx.size == 0:
             continue

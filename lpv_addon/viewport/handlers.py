@@ -4,8 +4,8 @@
   objects added or removed); camera moves and view-only changes do not touch the LPV.
 - ``frame_change_post``: ``frame_set`` and playback fire this, not a depsgraph update.
 - ``undo_post``/``redo_post``: the restored state is re-extracted (we keep no bpy references).
-- ``load_pre``/``load_post``: results, GPU resources and the worker of the old file go; the
-  new file starts clean.
+- ``load_pre``/``load_post``: results, GPU resources and the worker of the old file go
+  (:func:`reset`); the new file starts clean.
 All are ``@persistent`` so the add-on keeps working after a file load; ``unregister`` removes
 every one of them (also stale copies from an earlier load of this module), the timer and the
 overlay's draw handler.
@@ -61,14 +61,20 @@ def on_undo(*_args) -> None:
     live.mark_dirty("undo/redo")
 
 
+def reset() -> None:
+    """Stop the worker, drop every result and the overlay's GPU resources made from them."""
+    live.shutdown()
+    overlay.free_resources()
+
+
 @persistent
 def on_load_pre(*_args) -> None:
-    live.shutdown()
+    reset()
 
 
 @persistent
 def on_load_post(*_args) -> None:
-    live.shutdown()
+    reset()
     live.mark_dirty("file loaded")
     if not bpy.app.timers.is_registered(timer):
         bpy.app.timers.register(timer, first_interval=0.5, persistent=True)
@@ -125,4 +131,4 @@ def unregister() -> None:
         lst = getattr(bpy.app.handlers, name)
         for h in [h for h in lst if _ours(h, fn)]:
             lst.remove(h)
-    live.shutdown()
+    reset()

@@ -1,9 +1,9 @@
-"""The live LPV engine behind the viewport overlay, the batch operator and the comparison.
+"""The live LPV behind the viewport overlay: what changed, requests to the worker, results.
 
-Blender's process never runs moderngl (it broke Blender's drawing, design.md): the engine
-runs in one long-lived child process (``python -m lpv_core.worker``, see that module for
-the protocol) that keeps its GL context warm. This side extracts the scene with bpy, writes it
-as arrays, and reads back the LPV grids; the overlay uploads them as 3D textures.
+The engine runs in one long-lived worker process (:mod:`..worker_client`) that keeps its GL
+context warm. This side extracts the scene with bpy, sends it, and keeps the LPV grids that
+come back as plain data (:class:`LiveResult`); the overlay (``overlay.py``) reads them and owns
+every GPU resource made from them.
 
 Planning (what is recomputed, what is skipped and why):
 - depsgraph/frame handlers and property updates call :func:`mark_dirty` with what changed;
@@ -19,146 +19,19 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
-import importlib
 import json
 import os
-import queue
-import shutil
-import subprocess
-import sys
-import tempfile
-import threading
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import bpy
 import numpy as np
 
-from ._core import core
+from .._core import core
+from ..scene_io.extract import extract_scene
+from ..worker_client import WorkerClient, WorkerError
 
-live_worker = importlib.import_module(core.__name__ + ".worker")
-PACKAGE_PARENT = str(Path(core.__file__).resolve().parents[1])
-WORKER_MODULE = "lpv_core.worker"
 MAX_REASONS = 12
-
-
-class WorkerError(RuntimeError):
-    """The worker process failed, died or did not answer in time."""
-
-
-class WorkerClient:
-    """A ``lpv_core.worker`` child process with a line-based JSON protocol."""
-
-    def __init__(self, python: str | None = None):
-        self.dir = tempfile.mkdtemp(prefix="lpv_live_")
-        self.log_path = os.path.join(self.dir, "worker.log")
-        self._log = open(self.log_path, "wb")  # noqa: SIM115 - lives as long as the process
-        env = dict(os.environ)
-        paths = [PACKAGE_PARENT] + [p for p in sys.path if p and os.path.isdir(p)]
-        env["PYTHONPATH"] = os.pathsep.join(dict.fromkeys(paths))
-        env.setdefault("PYTHONNOUSERSITE", "1")
-        flags = getattr(subprocess, "CREATE_NO_WINDOW", 0) if os.name == "nt" else 0
-        self.proc = subprocess.Popen(
-            [python or sys.executable, "-m", WORKER_MODULE],
-            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=self._log, env=env,
-            cwd=self.dir, text=True, encoding="utf-8", bufsize=1, creationflags=flags,
-        )
-        self._next = 0
-        self._replies: dict = {}
-        self._lock = threading.Lock()
-        self._arrived = queue.Queue()
-        self._reader = threading.Thread(target=self._read, name="lpv-worker-reader", daemon=True)
-        self._reader.start()
-
-    def _read(self) -> None:
-        for line in self.proc.stdout:
-            try:
-                reply = json.loads(line)
-            except json.JSONDecodeError:
-                continue
-            with self._lock:
-                self._replies[reply.get("id")] = reply
-            self._arrived.put(reply.get("id"))
-
-    @property
-    def alive(self) -> bool:
-        return self.proc.poll() is None
-
-    def path(self, name: str) -> str:
-        return os.path.join(self.dir, name)
-
-    def send(self, cmd: str, **kw) -> int:
-        if not self.alive:
-            raise WorkerError(f"LPV worker exited ({self.proc.returncode}): {self.log_tail()}")
-        self._next += 1
-        try:
-            self.proc.stdin.write(json.dumps({"id": self._next, "cmd": cmd, **kw}) + "\n")
-            self.proc.stdin.flush()
-        except OSError as exc:
-            raise WorkerError(f"LPV worker is gone ({exc}): {self.log_tail()}") from None
-        return self._next
-
-    def reply(self, rid: int) -> dict | None:
-        """The reply to request ``rid`` if it arrived (non-blocking), else None."""
-        with self._lock:
-            reply = self._replies.pop(rid, None)
-        if reply is None and not self.alive and not self._reader.is_alive():
-            with self._lock:
-                reply = self._replies.pop(rid, None)
-            if reply is None:
-                raise WorkerError(f"LPV worker exited ({self.proc.returncode}): "
-                                  f"{self.log_tail()}")
-        return reply
-
-    def wait(self, rid: int, timeout: float = 300.0) -> dict:
-        deadline = time.monotonic() + timeout
-        while True:
-            reply = self.reply(rid)
-            if reply is not None:
-                return reply
-            left = deadline - time.monotonic()
-            if left <= 0:
-                raise WorkerError(f"LPV worker did not answer within {timeout:.0f} s")
-            try:
-                self._arrived.get(timeout=min(left, 0.2))
-            except queue.Empty:
-                pass
-
-    def log_tail(self, lines: int = 3) -> str:
-        try:
-            self._log.flush()
-            text = Path(self.log_path).read_text(errors="replace").strip().splitlines()
-        except OSError:
-            return ""
-        return " | ".join(text[-lines:])
-
-    def close(self, timeout: float = 3.0) -> None:
-        """Ask the worker to quit, kill it if it does not, and remove its folder."""
-        if self.alive:
-            try:
-                self.proc.stdin.write(json.dumps({"id": 0, "cmd": "quit"}) + "\n")
-                self.proc.stdin.flush()
-            except OSError:
-                pass
-            try:
-                self.proc.wait(timeout)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait(timeout)
-        for stream in (self.proc.stdin, self.proc.stdout):
-            try:
-                stream.close()
-            except OSError:
-                pass
-        self._reader.join(timeout)
-        self._log.close()
-        shutil.rmtree(self.dir, ignore_errors=True)
-
-    def kill(self) -> None:
-        if self.alive:
-            self.proc.kill()
-        self.close(timeout=3.0)
 
 
 # --------------------------------------------------------------------------- live state
@@ -170,8 +43,8 @@ class LiveResult:
 
     serial: int
     grid: object  # core.grid.Grid or None
-    values: np.ndarray | None  # combined (R,R,R,3,K): K = 9 for angular "dom", else 4
-    per_light: dict  # light name -> (R,R,R,3,K)
+    values: np.ndarray | None  # combined (R, R, R, 3, 9): SH bands 0-2 per colour
+    per_light: dict  # light name -> (R, R, R, 3, 9)
     lights: list
     settings: object
     areas: list
@@ -183,7 +56,6 @@ class LiveResult:
     # Grid (``grid`` or one of ``fine``) -> geometry_volume.cell_gaps (6, R, R, R) or None:
     # where lookups move their sample point (lookup.gap_corrected)
     gaps: dict = field(default_factory=dict)
-    cosine_table: np.ndarray | None = None
     stats: dict = field(default_factory=dict)
     arrived: float = 0.0  # time.monotonic() when it arrived (fade-in start)
     recombine_key: str = ""
@@ -225,7 +97,8 @@ def client() -> WorkerClient:
 
 
 def shutdown() -> None:
-    """Stop the worker and drop every result (unregister, file load)."""
+    """Stop the worker and drop every result (unregister, file load); the GPU resources made
+    from them are the overlay's to free (``handlers.reset``)."""
     if STATE.client is not None:
         STATE.client.close()
     STATE.client = None
@@ -234,9 +107,6 @@ def shutdown() -> None:
     STATE.dirty = True
     STATE.reasons = ["reset"]
     STATE.error = ""
-    from . import overlay
-
-    overlay.free_resources()
 
 
 # ------------------------------------------------------------------------------ planning
@@ -280,8 +150,6 @@ def recombine_key(scene) -> str:
 def extract(scene: bpy.types.Scene, depsgraph=None, overrides: dict | None = None):
     """The scene as the live viewport sees it (viewport visibility, no camera needed);
     ``overrides`` replace GI settings (GISettings names) on top of Scene.lpv."""
-    from .extract import extract_scene
-
     depsgraph = depsgraph or bpy.context.evaluated_depsgraph_get()
     return extract_scene(depsgraph, scene, settings_overrides=overrides, require_camera=False,
                          render_visibility=False)
@@ -317,17 +185,17 @@ def _recombine(scene, key: str, reasons: list[str], t0: float) -> LiveResult | N
         "info": dict(cur.stats.get("info", {})), "changed": list(reasons)}
     return _new_result(cur.grid, values, cur.per_light, scene, stats, key,
                        vpl=(cur.vpl_position, cur.vpl_flux), visibility=cur.visibility,
-                       cosine_table=cur.cosine_table, gaps=cur.gaps)
+                       gaps=cur.gaps)
 
 
 def _new_result(grid, values, per_light, scene, stats, key, vpl=(None, None), visibility=None,
-                cosine_table=None, fine=None, gaps=None) -> LiveResult:
+                fine=None, gaps=None) -> LiveResult:
     STATE.serial += 1
     return LiveResult(
         serial=STATE.serial, grid=grid, values=values, per_light=per_light,
         lights=list(scene.lights), settings=scene.settings, areas=list(scene.areas),
         geometry=_geometry(scene), vpl_position=vpl[0], vpl_flux=vpl[1], visibility=visibility,
-        cosine_table=cosine_table, stats=stats, arrived=time.monotonic(), recombine_key=key,
+        stats=stats, arrived=time.monotonic(), recombine_key=key,
         fine=list(fine or []), gaps=dict(gaps or {}),
     )
 
@@ -357,7 +225,7 @@ def _read_reply(reply: dict, scene, key: str, reasons: list[str], t_sent: float,
     stats["ms"]["round_trip"] = (time.perf_counter() - t_sent) * 1000.0
     stats["changed"] = list(reasons)
     opt = {k: (data[k] if k in data.files else None)
-           for k in ("vpl_position", "vpl_flux", "visibility", "cosine_table")}
+           for k in ("vpl_position", "vpl_flux", "visibility")}
     gaps = {}  # keyed by the very Grid objects of the result
     if grid is not None and "gaps" in data.files:
         gaps[grid] = data["gaps"]
@@ -371,14 +239,14 @@ def _read_reply(reply: dict, scene, key: str, reasons: list[str], t_sent: float,
             gaps[g] = data[f"fine_{i}_gaps"]
     return _new_result(grid, values, per_light, scene, stats, key,
                        vpl=(opt["vpl_position"], opt["vpl_flux"]), visibility=opt["visibility"],
-                       cosine_table=opt["cosine_table"], fine=fine, gaps=gaps)
+                       fine=fine, gaps=gaps)
 
 
 def refresh(scene: bpy.types.Scene, depsgraph=None, wait: bool = False,
             timeout: float = 300.0, overrides: dict | None = None) -> bool:
     """Start an LPV update for ``scene`` (or re-combine at once); with ``wait``, block until
     the new result is in. Returns True when a new result was accepted now. ``overrides``:
-    GI settings on top of Scene.lpv (e.g. {"angular": "sh"})."""
+    GI settings on top of Scene.lpv (e.g. {"grid_resolution": 24})."""
     if STATE.pending is not None:
         if not wait:
             mark_dirty("edit while computing")
@@ -399,10 +267,8 @@ def refresh(scene: bpy.types.Scene, depsgraph=None, wait: bool = False,
     worker = client()
     STATE.requests += 1
     name = f"scene_{STATE.requests}.npz"
-    request = worker.path(name)
     reply_path = worker.path("reply_" + name)
-    live_worker.save_scene(request, core_scene)
-    rid = worker.send("update", scene=request, reply=reply_path)
+    rid, _ = worker.send_scene("update", core_scene, name, reply=reply_path)
     STATE.pending = (rid, key, core_scene, time.perf_counter(), reasons, reply_path, t_extract)
     STATE.last_sent = time.monotonic()
     if wait:
@@ -551,157 +417,3 @@ def stats_lines(result: LiveResult | None = None) -> list[str]:
     return lines
 
 
-# ---------------------------------------------------------------------------- batch job
-
-
-class BatchJob:
-    """Renders a frame range through the worker, one frame in flight at a time.
-
-    Each frame: ``frame_set`` (animated values, e.g. a keyframed ``Scene.lpv.intensity``),
-    extraction here, deferred render + EXR in the worker (files appear atomically), stats.json
-    rewritten after every frame (same shape as the batch CLI's). Cancelling keeps every
-    finished frame and removes the unfinished one.
-    """
-
-    def __init__(self, scene: bpy.types.Scene, out_dir, frames=None, resolution=None):
-        self.scene_name = scene.name
-        self.out = Path(bpy.path.abspath(str(out_dir)))
-        first, last = frames or (scene.frame_start, scene.frame_end)
-        if last < first:
-            raise ValueError(f"frame range {first}-{last} is empty")
-        self.frames = list(range(int(first), int(last) + 1))
-        self.resolution = resolution
-        self.done: list[int] = []
-        self.record = {"scene": scene.name, "settings": None, "frames": []}
-        self.original_frame = scene.frame_current
-        self.worker: WorkerClient | None = None
-        self.pending = None
-        self.cancelled = False
-        self.error = ""
-
-    @property
-    def scene(self) -> bpy.types.Scene:
-        scene = bpy.data.scenes.get(self.scene_name)
-        if scene is None:
-            raise ValueError(f"scene '{self.scene_name}' is gone")
-        return scene
-
-    @property
-    def total(self) -> int:
-        return len(self.frames)
-
-    @property
-    def finished(self) -> bool:
-        return self.pending is None and (len(self.done) == self.total or self.cancelled
-                                         or bool(self.error))
-
-    def start(self) -> None:
-        try:
-            self.out.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise ValueError(f"cannot create '{self.out}': {exc.strerror}") from None
-        self.worker = WorkerClient()
-
-    def _send(self, frame: int) -> None:
-        from .extract import extract_scene
-
-        scene = self.scene
-        scene.frame_set(frame)
-        t0 = time.perf_counter()
-        depsgraph = bpy.context.evaluated_depsgraph_get()
-        core_scene = extract_scene(depsgraph, scene, self.resolution)
-        t_ex = (time.perf_counter() - t0) * 1000.0
-        if self.record["settings"] is None:
-            self.record["settings"] = core_scene.settings.as_dict()
-        request = self.worker.path(f"frame_{frame}.npz")
-        live_worker.save_scene(request, core_scene)
-        rid = self.worker.send("render", scene=request, exr=str(self.out / f"{frame:04d}.exr"))
-        self.pending = (rid, frame, t0, t_ex, core_scene.settings.intensity, request)
-
-    def step(self, block: bool = False) -> bool:
-        """Advance: collect a finished frame, send the next. Returns True while running."""
-        if self.worker is None:
-            self.start()
-        if self.pending is not None:
-            rid, frame, t0, t_ex, intensity, request = self.pending
-            reply = self.worker.wait(rid) if block else self.worker.reply(rid)
-            if reply is None:
-                return True
-            self.pending = None
-            os.unlink(request)
-            if not reply.get("ok"):
-                self.error = f"frame {frame}: {reply.get('error')}"
-                return False
-            stats = reply.get("stats", {})
-            stats.setdefault("ms", {})["extract"] = t_ex
-            stats["ms"]["total"] = (time.perf_counter() - t0) * 1000.0
-            self.record["frames"].append({"frame": frame, **stats, "intensity": intensity})
-            self.done.append(frame)
-            self._write_stats()
-        if self.cancelled or self.error or len(self.done) == self.total:
-            return False
-        try:
-            self._send(self.frames[len(self.done)])
-        except (ValueError, WorkerError) as exc:
-            self.error = str(exc)
-            return False
-        return True
-
-    def _write_stats(self) -> None:
-        from .batch import _write_json_atomic
-
-        self.record["cancelled"] = self.cancelled
-        _write_json_atomic(self.out / "stats.json", self.record)
-
-    def cancel(self) -> None:
-        """Stop now: the frame in flight is dropped, finished frames stay."""
-        self.cancelled = True
-        if self.pending is not None and self.worker is not None:
-            self.worker.kill()
-            self.worker = None
-            self.pending = None
-            for tmp in self.out.glob(".*.tmp"):
-                tmp.unlink(missing_ok=True)
-        self._write_stats()
-
-    def close(self) -> None:
-        if self.worker is not None:
-            self.worker.close()
-            self.worker = None
-        try:
-            self.scene.frame_set(self.original_frame)
-        except ValueError:
-            pass
-
-    def run(self) -> None:
-        """Render every frame, blocking (scripts, headless)."""
-        try:
-            while self.step(block=True):
-                pass
-        finally:
-            self.close()
-        if self.error:
-            raise ValueError(self.error)
-
-
-def render_passes(scene: bpy.types.Scene, resolution, worker: WorkerClient | None = None,
-                  timeout: float = 600.0, overrides: dict | None = None) -> tuple[dict, dict]:
-    """LPV passes ({Cycles pass name: (H, W, C)}) and stats of ``scene``'s camera view."""
-    from .extract import extract_scene
-
-    own = worker is None
-    worker = worker or WorkerClient()
-    try:
-        core_scene = extract_scene(bpy.context.evaluated_depsgraph_get(), scene, resolution,
-                                   overrides)
-        request, out = worker.path("compare.npz"), worker.path("compare_passes.npz")
-        live_worker.save_scene(request, core_scene)
-        reply = worker.wait(worker.send("render", scene=request, passes=out), timeout)
-        if not reply.get("ok"):
-            raise WorkerError(reply.get("error", "unknown worker error"))
-        data = np.load(out)
-        passes = {k.replace("_", " "): data[k] for k in data.files}
-        return passes, reply.get("stats", {})
-    finally:
-        if own:
-            worker.close()

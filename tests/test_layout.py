@@ -1,0 +1,160 @@
+"""The tree's structure: no import cycle in lpv_core or lpv_addon (module-level and function-level
+imports alike), the core never imports bpy or the add-on, shipped code never imports the
+measurement tools, and the extension zip's Python stays within its line budget."""
+
+from __future__ import annotations
+
+import ast
+import zipfile
+from pathlib import Path
+
+import pytest
+from conftest import ROOT
+
+PACKAGES = ("lpv_core", "lpv_addon")
+ZIP_PYTHON_LINES = 14_000  # the issue's budget for the extension zip's Python
+
+
+def _module_name(path: Path) -> str:
+    parts = list(path.relative_to(ROOT).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts = parts[:-1]
+    return ".".join(parts)
+
+
+def _modules() -> dict[str, Path]:
+    found = {}
+    for pkg in PACKAGES:
+        for path in sorted((ROOT / pkg).rglob("*.py")):
+            found[_module_name(path)] = path
+    return found
+
+
+def _resolve(module: str, is_package: bool, level: int, target: str | None) -> str:
+    """The absolute module a relative import names (``from ..x import y`` in ``module``)."""
+    base = module.split(".") if is_package else module.split(".")[:-1]
+    if level > 1:
+        base = base[: len(base) - (level - 1)]
+    return ".".join(base + ([target] if target else []))
+
+
+def _imports(module: str, path: Path, modules: dict) -> set[str]:
+    """Every module of the two packages that ``module`` imports, at any depth of its code.
+    ``from a import b`` names the module a.b when that is a module, else a itself. The
+    add-on's way to the core (``from .. import lpv_core``, outside the package) counts as
+    lpv_core."""
+    tree = ast.parse(path.read_text(), str(path))
+    is_package = path.name == "__init__.py"
+    out = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            for alias in node.names:
+                out.add(alias.name)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = _resolve(module, is_package, node.level, node.module)
+            else:
+                base = node.module or ""
+            for alias in node.names:
+                sub = f"{base}.{alias.name}" if base else alias.name
+                out.add(sub if sub in modules or alias.name in PACKAGES else base)
+    return {m if m in modules else m.split(".")[0] if m.split(".")[0] in PACKAGES else m
+            for m in out if m.split(".")[0] in PACKAGES or m in PACKAGES}
+
+
+def _graph() -> dict[str, set[str]]:
+    modules = _modules()
+    return {m: _imports(m, p, modules) - {m} for m, p in modules.items()}
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Strongly connected components with more than one module (Tarjan)."""
+    index, low, stack, on, comps, counter = {}, {}, [], set(), [], [0]
+
+    def visit(v):
+        index[v] = low[v] = counter[0]
+        counter[0] += 1
+        stack.append(v)
+        on.add(v)
+        for w in graph.get(v, ()):
+            if w not in graph:
+                continue
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                comps.append(sorted(comp))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return comps
+
+
+def test_cycle_finder_finds_a_cycle() -> None:
+    """The checker itself: a two-module loop and a three-module loop are reported."""
+    graph = {"a": {"b"}, "b": {"a"}, "c": {"d"}, "d": {"e"}, "e": {"c"}, "f": {"a"}}
+    assert sorted(_cycles(graph)) == [["a", "b"], ["c", "d", "e"]]
+
+
+def test_relative_imports_resolve() -> None:
+    assert _resolve("lpv_core.render.deferred", False, 2, "engine") == "lpv_core.engine"
+    assert _resolve("lpv_core.propagation", True, 1, "sweep") == "lpv_core.propagation.sweep"
+    assert _resolve("lpv_addon._core", False, 2, None) == ""
+
+
+def test_no_import_cycle() -> None:
+    graph = _graph()
+    assert len(graph) > 20  # both packages were walked
+    assert _cycles(graph) == []
+
+
+def test_core_imports_neither_bpy_nor_the_addon() -> None:
+    for path in (ROOT / "lpv_core").rglob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            names = ([a.name for a in node.names] if isinstance(node, ast.Import) else
+                     [node.module or ""] if isinstance(node, ast.ImportFrom) and not node.level
+                     else [])
+            for name in names:
+                root = name.split(".")[0]
+                assert root not in ("bpy", "lpv_addon", "tools", "mathutils", "gpu"), \
+                    f"{path.relative_to(ROOT)} imports {name}"
+
+
+def test_shipped_code_never_imports_the_tools() -> None:
+    for pkg in PACKAGES:
+        for path in (ROOT / pkg).rglob("*.py"):
+            for node in ast.walk(ast.parse(path.read_text())):
+                if isinstance(node, ast.ImportFrom) and not node.level:
+                    assert (node.module or "").split(".")[0] != "tools", path
+                elif isinstance(node, ast.Import):
+                    assert all(a.name.split(".")[0] != "tools" for a in node.names), path
+
+
+@pytest.fixture(scope="module")
+def ext_zip(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from tools.build_extension import build_all
+
+    return build_all(tmp_path_factory.mktemp("layout_zip"), split_platforms=False)[0]
+
+
+def test_zip_python_within_budget(ext_zip: Path) -> None:
+    """The zip ships what Blender runs: its Python within the budget, no tools or tests."""
+    with zipfile.ZipFile(ext_zip) as zf:
+        names = zf.namelist()
+        py = [n for n in names if n.endswith(".py")]
+        lines = sum(zf.read(n).decode().count("\n") for n in py)
+    assert not [n for n in names if n.split("/")[0] in ("tools", "tests", "docs")]
+    assert {"lpv_core/engine.py", "lpv_addon/__init__.py", "__init__.py"} <= set(py)
+    print(f"extension zip: {len(py)} Python files, {lines} lines")
+    assert lines <= ZIP_PYTHON_LINES, f"{lines} lines of Python in the zip"
