@@ -8,7 +8,7 @@ Per frame it writes DIR/NNNN.exr (Combined, Diffuse Direct, Diffuse Indirect, Di
 and rewrites DIR/stats.json; both appear atomically, so a cancelled batch keeps finished frames.
 Progress goes to stderr. Exit 0 on success, 2 with a one-line reason on bad arguments or input.
 The frames go through the Render Batch operator's loop (render/frames.py) with the engine in
-this process: no Blender drawing happens here (see design.md).
+this process: no Blender drawing happens here.
 """
 
 from __future__ import annotations

@@ -23,12 +23,12 @@ from .viewport import live
 # Quality presets: name -> (label, description, settings).
 PRESETS = {
     "DRAFT": ("Draft", "12^3 grid, 128^2 RSM: fastest (Cornell box indirect error 0.17)", {
-        "grid_resolution": 12, "rsm_resolution": 128, "iterations": 0, "cascades": 3}),
+        "grid_resolution": 12, "rsm_resolution": 128, "cascades": 3}),
     "PREVIEW": ("Preview", "16^3 grid, 256^2 RSM: the default (Cornell box indirect error 0.19)", {
-        "grid_resolution": 16, "rsm_resolution": 256, "iterations": 0, "cascades": 3}),
+        "grid_resolution": 16, "rsm_resolution": 256, "cascades": 3}),
     "HIGH": ("High", ("24^3 grid, 512^2 RSM: 3-5x Preview's time; finer cells, less error "
                       "(point-lit room 0.11, sunlit room 0.34)"), {
-        "grid_resolution": 24, "rsm_resolution": 512, "iterations": 0, "cascades": 3}),
+        "grid_resolution": 24, "rsm_resolution": 512, "cascades": 3}),
 }
 _APPLYING_PRESET = [False]
 # Defaults follow the core's GISettings, so the add-on and scripts start from the same place.
@@ -110,11 +110,6 @@ class LPVSceneSettings(bpy.types.PropertyGroup):
         name="Auto Cascades", default=_CORE.cascades_auto, update=_setting_changed,
         description=("Use as many cascades as the view needs: one when the camera is inside a "
                      "closed space, more when it sees open ground stretching far from it"))
-    iterations: IntProperty(
-        name="Iterations", default=_CORE.iterations, min=0, max=1000, update=_setting_changed,
-        description=("Propagation steps, one cell each (0: solve exactly in one sweep, as "
-                     "if light travelled until absorbed or out of the volume)"),
-    )
     rsm_resolution: IntProperty(name="RSM Resolution", default=_CORE.rsm_resolution, min=16,
                                 max=2048,
                                 update=_setting_changed,

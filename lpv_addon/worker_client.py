@@ -1,6 +1,6 @@
 """The ``lpv_core.worker`` child process and its line-based JSON protocol, client side.
 
-Blender's process never runs moderngl (it broke Blender's drawing, design.md): the live
+Blender's process never runs moderngl (it breaks Blender's drawing): the live
 viewport, the Render Batch operator and the Cycles comparison send scenes as .npz files to one
 child process (``python -m lpv_core.worker``, see that module for the protocol) and read the
 results back as arrays.
@@ -136,7 +136,7 @@ class WorkerClient:
                 self.proc.wait(timeout)
             except subprocess.TimeoutExpired:
                 self.proc.kill()
-                self.proc.wait(timeout)
+                self.proc.wait()  # SIGKILL cannot be ignored: this returns
         for stream in (self.proc.stdin, self.proc.stdout):
             try:
                 stream.close()

@@ -15,7 +15,6 @@ import numpy as np
 from . import sh
 from .grid import Grid
 from .injection import trilinear_corners, visible_corners
-from .propagation import closure
 from .runtime import jit, pool
 
 REPROJECTION_GAIN = np.pi / (sh.C0**2 + sh.C1**2)  # = 12/7
@@ -96,11 +95,7 @@ def irradiance(
     read with the irradiance kernel of sh.irradiance_weights, exact for the clamped cosine up to
     band 2 (Ramamoorthi & Hanrahan 2001): a beam, an isotropic field and a uniform hemisphere
     (light leaving a lit floor: a floor receives none of it) all come out right to within the
-    kernel's band 4. A 4-coefficient "dom" grid is read as its maximum-entropy lobe
-    (closure.py): the flux that passed through it becomes irradiance Phi E[max(0, <-n, w>)] /
-    s^2, exact for a beam (Phi / s^2 head-on) and for an isotropic field (Phi / (4 s^2) = pi
-    L), but it reads a hemisphere as a lobe with a tail behind it. ``angular="sh"`` (KD10's
-    grid, 4 coefficients): the clamped cosine lobe of the module docstring, times KD10's
+    kernel's band 4. ``angular="sh"`` (KD10's grid, 4 coefficients): the clamped cosine lobe of the module docstring, times KD10's
     gradient damping (``gradient_damping``).
     """
     positions = np.asarray(positions, np.float64)
@@ -112,15 +107,12 @@ def irradiance(
     if coeffs.shape[-1] == sh.BANDS2:
         e = np.einsum("mcs,ms->mc", coeffs, sh.irradiance_weights(normals))
         return np.maximum(e / (grid.cell_size**2), 0.0)
-    if angular in closure.LOBE_MODELS:
-        held, r, d = closure.moments(coeffs)  # (M, 3), (M, 3), (M, 3, 3)
-        t = -np.einsum("mcx,mx->mc", d, normals)
-        e = held * closure.cosine_expectation(r, t) / (grid.cell_size**2)
-        return np.maximum(e, 0.0)
+    if angular != "sh":
+        raise ValueError(f"a {coeffs.shape[-1]}-coefficient grid is KD10's (angular='sh'), "
+                         f"not {angular!r}: dom grids hold {sh.BANDS2} coefficients")
     lobe = sh.cosine_lobe(-normals)  # light arriving at the receiver travels along -n
     e = np.einsum("mcs,ms->mc", coeffs, lobe)
-    if angular == "sh":
-        e *= gradient_damping(grid, values, at, normals, e, visibility)
+    e *= gradient_damping(grid, values, at, normals, e, visibility)
     e *= REPROJECTION_GAIN / (grid.cell_size**2)
     return np.maximum(e, 0.0)
 

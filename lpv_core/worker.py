@@ -1,6 +1,6 @@
 """Long-running LPV worker for Blender's UI: ``python -m lpv_core.worker``.
 
-moderngl inside Blender's process breaks Blender's drawing (design.md), so the live viewport
+moderngl inside Blender's process breaks Blender's drawing (measured: the wrong context, then an abort on release), so the live viewport
 and the UI's batch/compare operators run the whole engine here, in a child process that keeps
 its GL context, rasteriser and shader cache warm between requests.
 
@@ -30,7 +30,6 @@ import traceback
 
 import numpy as np
 
-from .propagation import closure
 from .scene.model import Area, Camera, GISettings, Light, Material, Scene
 
 # ------------------------------------------------------------------------ scene <-> npz
@@ -117,18 +116,6 @@ def load_scene(path: str) -> Scene:
 # ----------------------------------------------------------------------------- replies
 
 
-def _cosine_table(n: int = 64):
-    """E[max(0, <c, w>)] over (mean cosine, <c, d>) for the lobe lookup of a 4-coefficient
-    "dom" grid (closure.LOBE_MODELS), or None."""
-    try:
-        from .propagation import closure
-    except ImportError:
-        return None
-    r = np.linspace(0.0, closure.MAX_MEAN_COSINE, n)
-    t = np.linspace(-1.0, 1.0, n + 1)
-    return closure.cosine_expectation(r[:, None], t[None, :]).astype(np.float32)
-
-
 def save_result(path: str, result, scene: Scene) -> None:
     """Write an LPVResult for the viewport: combined, per-light and inner-cascade grids
     ((R,R,R,3,K) float32, K = 4 or 9 coefficients, written as they are), VPLs, visibility,
@@ -165,10 +152,6 @@ def save_result(path: str, result, scene: Scene) -> None:
             out[f"fine_{i}_visibility"] = np.asarray(vis, np.float32)
         if gaps.get(grid) is not None:
             out[f"fine_{i}_gaps"] = np.asarray(gaps[grid], np.float32)
-    if getattr(scene.settings, "angular", "dom") in closure.LOBE_MODELS:
-        table = _cosine_table()
-        if table is not None:
-            out["cosine_table"] = table
     tmp = path + ".tmp.npz"
     np.savez(tmp, **out)
     os.replace(tmp, path)

@@ -7,7 +7,7 @@ import pytest
 pytest.importorskip("numba")
 
 from lpv_core import grid, injection
-from lpv_core.propagation import closure, ordinates, quadrature
+from lpv_core.propagation import emission, ordinates, quadrature
 from lpv_core.runtime import jit
 
 
@@ -40,7 +40,7 @@ def _against_own_octant(injected: np.ndarray) -> int:
     numpy code's np.add.at branch): tilted emitters must make some."""
     dirs = ordinates.tables()[0]
     geometry = injected.sum(axis=3).reshape(-1, 4)
-    _, _, m = closure.moments(geometry[geometry[:, 0] > 0])
+    _, _, m = emission.moments(geometry[geometry[:, 0] > 0])
     cos = dirs @ m.T
     side = dirs[:, None] - cos[..., None] * m[None]
     sin = np.linalg.norm(side, axis=-1)

@@ -151,7 +151,7 @@ def test_the_cornell_box_is_the_numpy_sweep():
 
 
 def test_emission_directions_compiled_are_numpy_bits():
-    """ordinates.emission_directions compiled: closure.moments' directions bit for bit."""
+    """ordinates.emission_directions compiled: emission.moments' directions bit for bit."""
     for seed, r in ((1, 6), (2, 9)):
         injected = _vpls(r, seed=seed)
         injected[0, 0, 0] = 0.0

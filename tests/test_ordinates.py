@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from lpv_core import grid, injection, propagation, sh
-from lpv_core.propagation import closure, ordinates, quadrature
+from lpv_core.propagation import emission, ordinates, quadrature
 
 
 def _random_moments(r=8, seed=3):
@@ -48,11 +48,11 @@ def test_unfold_keeps_the_flux_sends_nothing_behind_an_emitter_and_folds_back():
     assert flux.min() >= 0.0
     folded = ordinates.fold(flux)
     np.testing.assert_allclose(propagation.flux(folded), propagation.flux(values), rtol=1e-5)
-    held, r, d = closure.moments(folded.reshape(-1, 4))
+    held, r, d = emission.moments(folded.reshape(-1, 4))
     lit = held > 1e-6 * held.max()
     # The folded lobe points the emitter's way with about a diffuse emitter's mean cosine.
     assert np.all(d[lit] @ n[0] > 0.99)
-    np.testing.assert_allclose(r[lit], closure.LAMBERTIAN_MEAN_COSINE, atol=0.03)
+    np.testing.assert_allclose(r[lit], emission.LAMBERTIAN_MEAN_COSINE, atol=0.03)
 
 
 def test_step_conserves_flux_and_respects_occluders():

@@ -992,7 +992,7 @@ def _tolerances() -> dict:
 
     import lpv_core as core
 
-    return importlib.import_module(f"{core.__name__}.stability").TOLERANCES
+    return importlib.import_module("tools.stability").TOLERANCES
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1501,7 +1501,7 @@ def main(argv: list[str] | None = None) -> int:
     import lpv_core as core
 
     # Imported now: a long run keeps the code it started with.
-    stability = importlib.import_module(f"{core.__name__}.stability")
+    stability = importlib.import_module("tools.stability")
     data: dict = {"scenes": [], "stability": None, "failed": []}
     for name in scenes:
         t0 = time.perf_counter()

@@ -6,7 +6,7 @@ extraction here, the engine's update and deferred render, the EXR written atomic
 stats.json rewritten after every frame, so a cancelled or failed batch keeps its finished
 frames. Where the engine runs is the only difference between the two callers:
 :class:`InProcess` for the CLI (no Blender drawing happens there), :class:`InWorker` inside
-Blender, whose process must never run moderngl (design.md).
+Blender, whose process must never run moderngl (it breaks Blender's drawing).
 """
 
 from __future__ import annotations

@@ -20,7 +20,7 @@ MESH_LIKE = frozenset({"MESH", "CURVE", "SURFACE", "FONT", "META"})
 UNSUPPORTED = frozenset({"CURVES", "POINTCLOUD", "VOLUME", "GPENCIL", "GREASEPENCIL"})
 # Scene.lpv properties copied into GISettings (see properties.py).
 SCENE_SETTINGS = (
-    "grid_resolution", "cascades", "cascades_auto", "iterations", "rsm_resolution",
+    "grid_resolution", "cascades", "cascades_auto", "rsm_resolution",
     "occlusion", "bounces", "backend", "intensity", "antialias",
 )
 DEFAULT_ALBEDO = (0.8, 0.8, 0.8)

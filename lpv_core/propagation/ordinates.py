@@ -4,8 +4,8 @@
 
 A two-moment cell (KD10's 2-band SH) must fold the light crossing it from all sides into one
 lobe per step; the fold blurs beams, and the error compounds over the ~R steps light travels.
-Here the injected lobe is unfolded once into the quadrature directions (the emission reading of
-closure.emission_density: a VPL's cos lobe), each direction's flux is advected one cell length
+Here the injected lobe is unfolded once into the quadrature directions (emission.emission_density:
+a VPL's cos lobe), each direction's flux is advected one cell length
 per step semi-Lagrangian (trilinear split over the 8 cells it lands between), and the moments
 are folded back only once, for the lookup. Transport is linear and each direction keeps its
 own light, so crossing beams pass through each other and light from a diffuse patch spreads as
@@ -31,7 +31,7 @@ import numpy as np
 
 from .. import sh
 from ..runtime import jit, pool
-from . import closure
+from . import emission
 from .quadrature import DIRECTIONS, offset_index, offset_visibilities, tables
 from .result import PropagationResult
 from .result import flux as grid_flux
@@ -39,7 +39,7 @@ from .result import flux as grid_flux
 
 def unfold(values: np.ndarray) -> np.ndarray:
     """(R, R, R, 3, 4) injected moments -> (q, 3, R, R, R) flux per direction, read as light
-    just emitted by diffuse surfaces (closure.emission_density); the flux is kept exactly.
+    just emitted by diffuse surfaces (emission.emission_density); the flux is kept exactly.
     Only cells holding light are evaluated (most of a grid is empty)."""
     dirs, _, _ = tables()
     shape = values.shape[:3]
@@ -54,7 +54,7 @@ def unfold(values: np.ndarray) -> np.ndarray:
 def _unfold_rows(cells: np.ndarray, rows: np.ndarray, dest: np.ndarray,
                  out: np.ndarray) -> None:
     """out[:, dest] = the flux per direction of the moments cells[rows] (rows (n, 4) with band
-    0 > 0): closure.moments, then emission_density normalised to each row's flux. Compiled
+    0 > 0): emission.moments, then emission_density normalised to each row's flux. Compiled
     when ``jit.enabled()`` (_unfold_rows_compiled); what unfold and unfold_sparse run."""
     if rows.size == 0:
         return
@@ -62,8 +62,8 @@ def _unfold_rows(cells: np.ndarray, rows: np.ndarray, dest: np.ndarray,
     if jit.enabled():
         _unfold_rows_compiled(cells, rows, dest, dirs, out)
         return
-    held, mean_cos, d = closure.moments(cells[rows])
-    w = closure.emission_density(mean_cos[None, :], dirs @ d.T).astype(np.float32)
+    held, mean_cos, d = emission.moments(cells[rows])
+    w = emission.emission_density(mean_cos[None, :], dirs @ d.T).astype(np.float32)
     w = np.where(w.sum(axis=0) > 0, w, np.float32(1.0))
     out[:, dest] = w * (held / w.sum(axis=0)).astype(np.float32)[None, :]
 
@@ -90,7 +90,7 @@ def unfold_sparse(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 @jit.kernel
 def _unfold_kernel(cells, rows, dest, dirs, out, base):  # pragma: no cover - compiled
     """``unfold`` row by row (compiled): out[base[j] + dest[t]] = the flux along direction j of
-    the moments cells[rows[t]] (closure.moments, then emission_density normalised to the
+    the moments cells[rows[t]] (emission.moments, then emission_density normalised to the
     row's flux; zero where band 0 <= 0), ``out`` flat: base[j] = j columns for a (q, columns)
     array, or any other layout (octants.py's lanes). float32 throughout, as the numpy
     code. A row whose mean cosine and direction are those of the row before (bit for bit:
@@ -98,9 +98,9 @@ def _unfold_kernel(cells, rows, dest, dirs, out, base):  # pragma: no cover - co
     density: the same numbers, a third of the time."""
     q = dirs.shape[0]
     sqrt_4pi = np.float32(sh.SQRT_4PI)
-    to_flux = np.float32(closure.FLUX_FROM_BAND1)
-    max_cos = np.float32(closure.MAX_MEAN_COSINE)
-    lo, hi = np.float32(0.5 + 1e-6), np.float32(closure.LAMBERTIAN_MEAN_COSINE)
+    to_flux = np.float32(emission.FLUX_FROM_BAND1)
+    max_cos = np.float32(emission.MAX_MEAN_COSINE)
+    lo, hi = np.float32(0.5 + 1e-6), np.float32(emission.LAMBERTIAN_MEAN_COSINE)
     zero = np.float32(0.0)
     w = np.empty(q, np.float32)
     nan = np.float32(np.nan)
@@ -131,14 +131,14 @@ def _unfold_kernel(cells, rows, dest, dirs, out, base):  # pragma: no cover - co
 
 @jit.kernel
 def _emission_weights_kernel(dirs, r, vx, vy, vz, rr, hi, w):  # pragma: no cover - compiled
-    """w[j] = closure.emission_density of mean cosine r (rr: r clipped to [1/2, hi]) around
+    """w[j] = emission.emission_density of mean cosine r (rr: r clipped to [1/2, hi]) around
     direction v, at dirs[j], in float32 as the numpy code; all 1 where they sum to 0. Returns
     their sum."""
     q = dirs.shape[0]
     zero, half, one, two, four = (np.float32(0.0), np.float32(0.5), np.float32(1.0),
                                   np.float32(2.0), np.float32(4.0))
     total = zero
-    if r > half and rr >= hi:  # closure.emission_exponent: n = 1, a plain cosine
+    if r > half and rr >= hi:  # emission.emission_exponent: n = 1, a plain cosine
         for j in range(q):
             c = dirs[j, 0] * vx + dirs[j, 1] * vy + dirs[j, 2] * vz
             w[j] = max(zero, c)
@@ -294,13 +294,13 @@ def launch_geometry(cells: np.ndarray, lit: np.ndarray, r: int,
 
 
 def emission_directions(cells: np.ndarray, lit: np.ndarray) -> np.ndarray:
-    """closure.moments' unit direction (n, 3) float32 of each lit cell's colours summed
+    """emission.moments' unit direction (n, 3) float32 of each lit cell's colours summed
     (``cells`` (R^3 3, 4), as lit_rows gives them): where ``launch`` moves a cell's light
     sideways from. Compiled when ``jit.enabled()`` (the same float32 operations: 32^3
     Cornell box, 0.7 -> 0.02 ms)."""
     if jit.enabled():
         return _emission_directions_compiled(cells, lit)
-    _, _, m = closure.moments(cells.reshape(-1, 3, 4)[lit].sum(axis=1))
+    _, _, m = emission.moments(cells.reshape(-1, 3, 4)[lit].sum(axis=1))
     return np.ascontiguousarray(m, np.float32)
 
 
@@ -313,9 +313,9 @@ def _emission_directions_compiled(cells: np.ndarray, lit: np.ndarray) -> np.ndar
 
 @jit.kernel
 def _directions_kernel(cells, lit, out):  # pragma: no cover - compiled
-    """``emission_directions`` cell by cell: colours summed in order, then closure.moments'
+    """``emission_directions`` cell by cell: colours summed in order, then emission.moments'
     vector, its norm and the direction (0 where the norm is 0), all float32."""
-    to_flux = np.float32(closure.FLUX_FROM_BAND1)
+    to_flux = np.float32(emission.FLUX_FROM_BAND1)
     zero = np.float32(0.0)
     for e in range(lit.shape[0]):
         row = lit[e] * 3
@@ -365,7 +365,7 @@ def launch(injected: np.ndarray, offset_visibility: list | None = None) -> np.nd
     lit = np.flatnonzero(geometry[:, 0] > 0)
     if lit.size:
         flux = unfold(injected).reshape(q, 3, -1)[:, :, lit]  # (q, 3, n)
-        _, _, m = closure.moments(geometry[lit])  # (n, 3): the cell's emission direction
+        _, _, m = emission.moments(geometry[lit])  # (n, 3): the cell's emission direction
         cos = dirs @ m.T  # (q, n)
         side = dirs[:, None, :] - cos[..., None] * m[None]  # (q, n, 3)
         sin = np.sqrt(np.sum(side * side, axis=-1))
@@ -439,7 +439,7 @@ def fold(flux: np.ndarray, coefficients: int = 4) -> np.ndarray:
 
 def emission_band2(values: np.ndarray) -> np.ndarray:
     """(..., 4) injected moments -> (..., 9): band 2 of the light ``unfold`` reads them as
-    (closure.emission_density, axially symmetric around the mean direction d), added in closed
+    (emission.emission_density, axially symmetric around the mean direction d), added in closed
     form: c_2m = Phi E[P2(<d, w>)] Y_2m(d). For cos^n, E[P2] = n / (n + 3); for r <= 1/2 (a
     uniform hemisphere mixed with an isotropic part) E[P2] = 0."""
     c = np.asarray(values, np.float32)
@@ -447,8 +447,8 @@ def emission_band2(values: np.ndarray) -> np.ndarray:
     out[..., :4] = c
     lit = c[..., 0] > 0
     if lit.any():
-        held, r, d = closure.moments(c[lit])
-        n = closure.emission_exponent(r.astype(np.float64))
+        held, r, d = emission.moments(c[lit])
+        n = emission.emission_exponent(r.astype(np.float64))
         p2 = np.where(r > 0.5, n / (n + 3.0), 0.0)
         band2 = sh.evaluate_basis2(d)[..., 4:]
         out[..., 4:][lit] = (held * p2)[..., None] * band2
@@ -458,12 +458,12 @@ def emission_band2(values: np.ndarray) -> np.ndarray:
 @jit.kernel
 def _emission_band2_kernel(c, out):  # pragma: no cover - compiled
     """``add_emission_band2`` row by row (compiled): out[i] += emission_band2(c[i]), the
-    arithmetic of closure.moments in float32 and of the band-2 term in float64, as the numpy
+    arithmetic of emission.moments in float32 and of the band-2 term in float64, as the numpy
     code; rows of zeros skipped."""
     sqrt_4pi = np.float32(sh.SQRT_4PI)
-    to_flux = np.float32(closure.FLUX_FROM_BAND1)
-    max_cos = np.float32(closure.MAX_MEAN_COSINE)
-    lo, hi = 0.5 + 1e-6, closure.LAMBERTIAN_MEAN_COSINE
+    to_flux = np.float32(emission.FLUX_FROM_BAND1)
+    max_cos = np.float32(emission.MAX_MEAN_COSINE)
+    lo, hi = 0.5 + 1e-6, emission.LAMBERTIAN_MEAN_COSINE
     zero = np.float32(0.0)
     for i in range(c.shape[0]):
         if c[i, 0] == zero and c[i, 1] == zero and c[i, 2] == zero and c[i, 3] == zero:
@@ -480,7 +480,7 @@ def _emission_band2_kernel(c, out):  # pragma: no cover - compiled
             continue  # E[P2] = 0: no band 2
         x, y, z = vx / norm, vy / norm, vz / norm
         rr = min(max(np.float64(r), lo), hi)
-        n = 1.0 if rr >= hi else (2.0 * rr - 1.0) / (1.0 - rr)  # closure.emission_exponent
+        n = 1.0 if rr >= hi else (2.0 * rr - 1.0) / (1.0 - rr)  # emission.emission_exponent
         s = np.float64(held) * (n / (n + 3.0))
         x, y, z = np.float64(x), np.float64(y), np.float64(z)
         out[i, 4] += s * (sh.Y2A * x * y)
