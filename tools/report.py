@@ -988,11 +988,9 @@ def plot_stability(figs: list[dict], out: Path) -> list[str]:
 
 def _tolerances() -> dict:
     """The tolerances tests/test_stability.py asserts (tools.stability.TOLERANCES)."""
-    import importlib
+    from tools.stability import TOLERANCES
 
-    import lpv_core as core
-
-    return importlib.import_module("tools.stability").TOLERANCES
+    return TOLERANCES
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1496,12 +1494,7 @@ def main(argv: list[str] | None = None) -> int:
     for old in out.glob("*.png"):
         old.unlink()
     res = args.resolution or prof["resolution"]
-    import importlib
-
-    import lpv_core as core
-
-    # Imported now: a long run keeps the code it started with.
-    stability = importlib.import_module("tools.stability")
+    from tools import stability  # imported now: a long run keeps the code it started with
     data: dict = {"scenes": [], "stability": None, "failed": []}
     for name in scenes:
         t0 = time.perf_counter()
