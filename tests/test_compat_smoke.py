@@ -35,6 +35,8 @@ BUNDLED = ("moderngl", "glcontext", "OpenEXR", "numba", "llvmlite")
 PASSES = ("Combined", "Diffuse Direct", "Diffuse Indirect", "Diffuse Color")
 BPY42 = ROOT / ".venv-bpy42" / "bin" / "python"
 TIMEOUT = 600
+# Same numbers within float noise: the max abs difference over each channel's peak value.
+TOLERANCE = 1e-4
 
 pytestmark = pytest.mark.bpy
 
@@ -76,7 +78,10 @@ def _bare_bpy_python(dest: Path) -> Path:
     site = dest / "lib" / f"python{sys.version_info[0]}.{sys.version_info[1]}" / "site-packages"
     todo, seen = ["bpy"], set()
     while todo:
-        dist = metadata.distribution(todo.pop())
+        try:
+            dist = metadata.distribution(todo.pop())
+        except metadata.PackageNotFoundError:  # a dependency for other Pythons (a marker)
+            continue
         name = dist.metadata["Name"].lower().replace("_", "-")
         if name in seen:
             continue
@@ -104,9 +109,9 @@ LINES = {"4.2": lambda tmp: BPY42, "5.3": lambda tmp: _bare_bpy_python(tmp / "ba
 def _read_exr(path: Path) -> dict[str, np.ndarray]:
     import OpenEXR
 
-    with OpenEXR.File(str(path), separate_channels=True) as f:
-        channels = f.channels()
-        return {name: np.asarray(ch.pixels, np.float64) for name, ch in channels.items()}
+    with OpenEXR.File(str(path), separate_channels=True) as f:  # one part per layer
+        return {name: np.asarray(ch.pixels, np.float64)
+                for part in f.parts for name, ch in part.channels.items()}
 
 
 @pytest.mark.parametrize("line", sorted(LINES))
@@ -136,12 +141,17 @@ def test_smoke(line: str, linux_zip: Path, reference_frame: Path, tmp_path: Path
     assert res["frames"] == ["0001.exr"], res
     assert res["disabled"], res
     ours, ref = _read_exr(out / "0001.exr"), _read_exr(reference_frame)
+    assert sorted(ours) == sorted(ref)
+    errors = {}
     for layer in PASSES:
-        names = sorted(n for n in ref if n.startswith(layer + "."))
+        names = sorted(n for n in ref if f".{layer}." in f".{n}")
         assert names, (layer, sorted(ref))
         for name in names:
             a, b = ours[name], ref[name]
             assert a.shape == b.shape, name
             scale = max(float(np.abs(b).max()), 1e-6)
-            err = float(np.abs(a - b).max()) / scale
-            assert err < 1e-4, f"{line}: {name} differs from the main venv's frame by {err:.2e}"
+            errors[name] = float(np.abs(a - b).max()) / scale
+    print(f"{line}: largest difference to the main venv's frame, relative to each channel's "
+          f"peak: {max(errors.values()):.2e}")
+    bad = {k: f"{v:.2e}" for k, v in errors.items() if not v < TOLERANCE}
+    assert not bad, f"{line}: channels differ from the main venv's frame: {bad}"

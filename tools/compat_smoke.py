@@ -59,8 +59,9 @@ def origin(name: str) -> str | None:
 
 
 def run(zip_path: str, out_dir: str) -> dict:
+    import bpy  # first: it puts Blender's script modules (addon_utils) on sys.path
+
     import addon_utils
-    import bpy
 
     with open(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..",
                            "blender_manifest.toml"), "rb") as fh:
