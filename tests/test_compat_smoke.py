@@ -59,19 +59,6 @@ def _env(tmp: Path) -> dict:
     return env
 
 
-@pytest.fixture(scope="module")
-def reference_frame(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The demo frame the main venv renders (its own moderngl/numba; bpy 5.3)."""
-    out = tmp_path_factory.mktemp("reference")
-    proc = subprocess.run(
-        [sys.executable, "-m", "lpv_addon.batch", "--demo", "--out", str(out), "--quiet"],
-        cwd=ROOT, env={**_env(out), "PYTHONPATH": str(ROOT)}, capture_output=True,
-        text=True, timeout=TIMEOUT, check=False)
-    assert proc.returncode == 0, proc.stdout + proc.stderr
-    assert (out / "0001.exr").is_file()
-    return out / "0001.exr"
-
-
 def _bare_bpy_python(dest: Path) -> Path:
     """A bare venv of this interpreter holding links to bpy and its dependencies only."""
     venv.EnvBuilder(with_pip=False, symlinks=True).create(dest)
@@ -114,19 +101,69 @@ def _read_exr(path: Path) -> dict[str, np.ndarray]:
                 for part in f.parts for name, ch in part.channels.items()}
 
 
+class _Run:
+    """A child process started now, its output collected when a test asks for it."""
+
+    def __init__(self, cmd: list[str], cwd: Path, env: dict):
+        self.log_path = cwd / "log.txt"
+        self._log = open(self.log_path, "w+")  # noqa: SIM115 - closed in wait()
+        self.proc = subprocess.Popen(cmd, cwd=cwd, env=env, stdout=self._log,
+                                     stderr=subprocess.STDOUT, text=True)
+
+    def wait(self) -> tuple[int, str]:
+        try:
+            rc = self.proc.wait(timeout=TIMEOUT)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            rc = self.proc.wait()
+        self._log.close()
+        return rc, self.log_path.read_text()
+
+
+@pytest.fixture(scope="module")
+def runs(linux_zip: Path, tmp_path_factory: pytest.TempPathFactory):
+    """Start the main venv's demo frame and every line's smoke run at once (they are
+    independent; most of their time is numba compiling the kernels in each worker)."""
+    started: dict = {}
+    ref = tmp_path_factory.mktemp("reference")
+    started["reference"] = (_Run(
+        [sys.executable, "-m", "lpv_addon.batch", "--demo", "--out", str(ref / "frames"),
+         "--quiet"], ROOT, {**_env(ref), "PYTHONPATH": str(ROOT)}), ref / "frames")
+    for line, make in LINES.items():
+        tmp = tmp_path_factory.mktemp(f"bpy{line.replace('.', '')}")
+        python = make(tmp)
+        if not python.exists():
+            started[line] = (None, python)
+            continue
+        out = tmp / "frames"
+        started[line] = (_Run([str(python), str(ROOT / "tools" / "compat_smoke.py"),
+                               str(linux_zip), str(out)], tmp, _env(tmp)), out)
+    yield started
+    for run, _ in started.values():
+        if run is not None and run.proc.poll() is None:
+            run.proc.kill()
+            run.wait()
+
+
+@pytest.fixture(scope="module")
+def reference_frame(runs) -> Path:
+    """The demo frame the main venv renders (its own moderngl/numba; bpy 5.3)."""
+    run, out = runs["reference"]
+    rc, log = run.wait()
+    assert rc == 0, log
+    assert (out / "0001.exr").is_file(), log
+    return out / "0001.exr"
+
+
 @pytest.mark.parametrize("line", sorted(LINES))
-def test_smoke(line: str, linux_zip: Path, reference_frame: Path, tmp_path: Path) -> None:
-    python = LINES[line](tmp_path)
-    if not python.exists():
-        pytest.fail(f"{python} is missing: run `bash tools/setup.sh` (it makes .venv-bpy42)")
-    out = tmp_path / "frames"
-    proc = subprocess.run(
-        [str(python), str(ROOT / "tools" / "compat_smoke.py"), str(linux_zip), str(out)],
-        cwd=tmp_path, env=_env(tmp_path), capture_output=True, text=True, timeout=TIMEOUT,
-        check=False)
-    lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT=")]
-    log = (proc.stdout + proc.stderr)[-4000:]
-    assert proc.returncode == 0 and lines, log
+def test_smoke(line: str, runs, reference_frame: Path) -> None:
+    run, out = runs[line]
+    if run is None:
+        pytest.fail(f"{out} is missing: run `bash tools/setup.sh` (it makes .venv-bpy42)")
+    rc, log = run.wait()
+    lines = [ln for ln in log.splitlines() if ln.startswith("RESULT=")]
+    log = log[-4000:]
+    assert rc == 0 and lines, log
     res = json.loads(lines[-1][len("RESULT="):])
     assert "error" not in res, res.get("traceback", res["error"]) + log
     assert ".".join(map(str, res["blender"][:2])) == line, res["blender"]
@@ -140,6 +177,8 @@ def test_smoke(line: str, linux_zip: Path, reference_frame: Path, tmp_path: Path
     assert res["render_batch"] == ["FINISHED"], log
     assert res["frames"] == ["0001.exr"], res
     assert res["disabled"], res
+    # The batch frame's worker ran the compiled kernels (bundled numba) too.
+    assert "numba" in json.dumps(res["stats"]), res["stats"]
     ours, ref = _read_exr(out / "0001.exr"), _read_exr(reference_frame)
     assert sorted(ours) == sorted(ref)
     errors = {}

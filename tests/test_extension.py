@@ -91,6 +91,10 @@ def test_zip_contents(ext_zip: Path, wheels: list[Path]) -> None:
     leaked = sorted(n for n in names if n.startswith(banned) or "__pycache__" in n)
     assert not leaked, leaked
     assert "pyproject.toml" not in names
+    # Measurement tools (benchmarks, report, stability suite) are not shipped.
+    tools = sorted(n for n in names if Path(n).name in ("bench.py", "report.py", "stability.py")
+                   or Path(n).name.startswith("bench_") or Path(n).name.endswith("_bench.py"))
+    assert not tools, tools
 
 
 def test_split_platforms(wheels: list[Path], tmp_path: Path) -> None:

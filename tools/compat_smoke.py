@@ -59,9 +59,9 @@ def origin(name: str) -> str | None:
 
 
 def run(zip_path: str, out_dir: str) -> dict:
-    import bpy  # first: it puts Blender's script modules (addon_utils) on sys.path
+    import bpy
 
-    import addon_utils
+    addon_utils = importlib.import_module("addon_utils")  # on sys.path once bpy is imported
 
     with open(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..",
                            "blender_manifest.toml"), "rb") as fh:
@@ -81,7 +81,7 @@ def run(zip_path: str, out_dir: str) -> dict:
     out["loaded"] = bool(addon_utils.check(module)[1])
     out["extension_site_packages"] = os.path.join(
         bpy.utils.user_resource("EXTENSIONS"), ".local", "lib",
-        "python%d.%d" % sys.version_info[:2], "site-packages")
+        "python{}.{}".format(*sys.version_info[:2]), "site-packages")
     out["origins"] = {name: origin(name) for name in (*BUNDLED, "numpy")}
     if not (out["enabled"] and out["loaded"]):
         return out
