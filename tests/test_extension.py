@@ -51,6 +51,8 @@ def test_validate_passes() -> None:
 
 # Wheels of the optional compiled CPU kernels (lpv_core/jit.py falls back to numpy without).
 OPTIONAL = {"numba", "llvmlite"}
+# The Pythons the supported Blenders embed: 3.11 (4.2 LTS to 5.0) and 3.13 (5.1 to 5.3).
+PYTHONS = ("cp311", "cp313")
 
 
 def test_manifest_wheels_fetched(wheels: list[Path]) -> None:
@@ -61,14 +63,18 @@ def test_manifest_wheels_fetched(wheels: list[Path]) -> None:
         assert rel.startswith("./wheels/"), rel
         assert path.is_file() and path.name == Path(rel).name
         assert zipfile.is_zipfile(path), f"{path.name} is not a valid wheel archive"
-    # Every (package, platform) pair is covered, with one version per package; the optional
-    # compiled kernels (numba, llvmlite: no wheel for Intel macOS) on every other platform.
+    # Every (package, platform, Python) triple is covered, with one version per package; the
+    # optional compiled kernels (numba, llvmlite: no wheel for Intel macOS) on every other
+    # platform.
     specs = manifest_wheels()
     for name in {s.name for s in specs}:
         assert len({s.version for s in specs if s.name == name}) == 1, name
-        count = len(MANIFEST["platforms"]) - (1 if name in OPTIONAL else 0)
-        assert len([s for s in specs if s.name == name]) == count, name
+        for py in PYTHONS:
+            count = len(MANIFEST["platforms"]) - (1 if name in OPTIONAL else 0)
+            assert len([s for s in specs if s.name == name and s.python_tag == py]) == count, (
+                name, py)
     assert OPTIONAL <= {s.name for s in specs}
+    assert {s.python_tag for s in specs} == set(PYTHONS)
 
 
 def test_zip_contents(ext_zip: Path, wheels: list[Path]) -> None:
@@ -85,6 +91,10 @@ def test_zip_contents(ext_zip: Path, wheels: list[Path]) -> None:
     leaked = sorted(n for n in names if n.startswith(banned) or "__pycache__" in n)
     assert not leaked, leaked
     assert "pyproject.toml" not in names
+    # Measurement tools (benchmarks, report, stability suite) are not shipped.
+    tools = sorted(n for n in names if Path(n).name in ("bench.py", "report.py", "stability.py")
+                   or Path(n).name.startswith("bench_") or Path(n).name.endswith("_bench.py"))
+    assert not tools, tools
 
 
 def test_split_platforms(wheels: list[Path], tmp_path: Path) -> None:
@@ -96,7 +106,9 @@ def test_split_platforms(wheels: list[Path], tmp_path: Path) -> None:
         names = {s.name for s in manifest_wheels()}
         if platform == "macos-x64":
             names -= OPTIONAL
-        assert len(whl) == len(names), (platform, whl)
+        assert len(whl) == len(names) * len(PYTHONS), (platform, whl)
+        for py in PYTHONS:  # both Pythons' wheels in every platform's zip
+            assert {Path(n).name.split("-")[0] for n in whl if f"-{py}-" in n} == names, (platform, py)
 
 
 _INSTALL_SCRIPT = r"""
