@@ -9,8 +9,7 @@ batch frame (`bpy.ops.lpv.render_batch`) to OUT_DIR/0001.exr. Prints one line
 `RESULT={json}` with what it saw; tests/test_compat_smoke.py judges it and compares the frame.
 
 Only public entry points of the installed extension are used: `bl_ext.user_default.<id>`
-(register), `scene.lpv`, `bpy.ops.lpv.*`; the one exception is the demo scene builder
-(`cornell_box`), looked up by name anywhere in the installed package (see `demo_builder`).
+(register), `scene.lpv`, `bpy.ops.lpv.*`, and the shipped demo scene builder (`demo_builder`).
 Never import this file from the test process: it imports bpy.
 """
 
@@ -20,7 +19,6 @@ import importlib
 import importlib.util
 import json
 import os
-import pkgutil
 import sys
 import traceback
 from pathlib import Path
@@ -31,23 +29,9 @@ BUNDLED = ("moderngl", "glcontext", "OpenEXR", "numba", "llvmlite")
 
 
 def demo_builder(package: str):
-    """The installed extension's `cornell_box(light, resolution=...)` scene builder.
-
-    There is no public entry point for the demo scene, so look for the function by name in the
-    extension's modules whose name mentions scenes or demo (survives moving modules around)."""
-    pkg = importlib.import_module(package)
-    for info in pkgutil.walk_packages(pkg.__path__, package + "."):
-        leaf = info.name.rsplit(".", 1)[-1]
-        if "scene" not in leaf and "demo" not in leaf:
-            continue
-        try:
-            module = importlib.import_module(info.name)
-        except ImportError:
-            continue
-        fn = getattr(module, "cornell_box", None)
-        if callable(fn):
-            return fn
-    raise LookupError(f"no cornell_box() found in {package}")
+    """The installed extension's demo scene builder, `cornell_box(light, resolution=...)`: the
+    scene `python -m lpv_addon.batch --demo` renders (lpv_addon/scene_io/demo.py)."""
+    return importlib.import_module(f"{package}.lpv_addon.scene_io.demo").cornell_box
 
 
 def origin(name: str) -> str | None:
