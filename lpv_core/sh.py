@@ -37,11 +37,6 @@ def cosine_lobe(n: np.ndarray) -> np.ndarray:
     return np.concatenate([band0, C1 * _signs_xyz(n)], axis=-1)
 
 
-def integral(coeffs: np.ndarray) -> np.ndarray:
-    """Integral over the sphere of the function with these coefficients (only band 0 counts)."""
-    return np.asarray(coeffs)[..., 0] * (SQRT_4PI * Y0) * SQRT_4PI
-
-
 # Band 2 (real, orthonormal), appended after the 4 above in this order:
 # (Y2-2, Y2-1, Y20, Y21, Y22) = (Y2A xy, Y2A yz, Y2B (3 z^2 - 1), Y2A xz, Y2C (x^2 - y^2)).
 Y2A = 1.0925484305920792  # sqrt(15 / (4 pi))

@@ -12,7 +12,8 @@ import pytest
 from lpv_core import areas, engine, lookup
 from lpv_core.grid import Grid
 from lpv_core.render import deferred
-from lpv_core.scene import Area, GISettings, Light, Material, demo, make_scene
+from lpv_core.scene import Area, GISettings, Light, Material, make_scene
+from tools import core_scenes as demo
 
 # The engine's defaults (the "dom" transport, the model users get) at small sizes; a key
 # GISettings lacks raises (GISettings.updated). antialias=1: the tests compare passes pixel by

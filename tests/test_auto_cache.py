@@ -14,8 +14,6 @@ from lpv_core.scene import GISettings
 FAKE_MS = {"propagate": {"numpy": 5.0, "gl": 1.0}, "lookup": {"numpy": 20.0, "gl": 30.0}}
 
 
-
-
 def _no_measure(**_):
     raise AssertionError("measure() must not run")
 

@@ -6,7 +6,8 @@ import pytest
 
 from lpv_core import engine
 from lpv_core.render import deferred
-from lpv_core.scene import GISettings, demo
+from lpv_core.scene import GISettings
+from tools import core_scenes as demo
 
 
 def test_antialias_is_the_box_filtered_finer_image():

@@ -22,11 +22,10 @@ from lpv_core import engine, injection, lookup, propagation, sh
 from lpv_core.grid import Grid
 from lpv_core.propagation import ordinates
 from lpv_core.render import deferred
-from lpv_core.scene import GISettings, demo
+from lpv_core.scene import GISettings
+from tools import core_scenes as demo
 
 RTOL = 1e-4
-
-
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,4 @@
-"""The compiled direct light (direct._direct_kernel) gives what the numpy code gives: every
+"""The compiled direct light (kernels.direct.irradiance) gives what the numpy code gives: every
 light type, shadowed and not, receivers lit, unlit, in and out of the shadow maps' views."""
 
 from __future__ import annotations
@@ -11,7 +11,8 @@ pytest.importorskip("numba")
 from lpv_core import engine
 from lpv_core.render import direct
 from lpv_core.runtime import jit
-from lpv_core.scene import GISettings, demo
+from lpv_core.scene import GISettings
+from tools import core_scenes as demo
 
 pytestmark = pytest.mark.skipif(not jit.enabled(), reason="LPV_JIT=0: the kernels are off")
 

@@ -1,8 +1,11 @@
-"""geometry_volume's compiled kernels (jit.py) against its numpy code: the same bits.
+"""geometry_volume's compiled twins (kernels/geometry_volume.py) against its numpy reference:
+the same bits.
 
 Coverage is a count of samples and the kernels repeat the numpy arithmetic operation for
 operation (same edge tolerances, plane rule and sample window), so every output must match
 exactly, not just to within a sample."""
+
+import inspect
 
 import numpy as np
 import pytest
@@ -11,17 +14,22 @@ pytest.importorskip("numba")
 
 from lpv_core import geometry_volume
 from lpv_core.grid import Grid, fit_grid
+from lpv_core.kernels import geometry_volume as compiled
 from lpv_core.runtime import jit
-from lpv_core.scene import GISettings, demo
+from lpv_core.scene import GISettings
+from tools import core_scenes as demo
 
 pytestmark = pytest.mark.skipif(not jit.enabled(), reason="kernels turned off (LPV_JIT=0)")
 
 
-def _both(fn, *args):
-    """(numpy result, compiled result) of fn(*args)."""
+TWINS = ("_subdivide", "face_coverage", "face_offsets", "occluder_volume")
+
+
+def _both(name, *args):
+    """(numpy reference's result, compiled twin's result) of the function ``name`` on args."""
     with jit.disabled():
-        ref = fn(*args)
-    return ref, fn(*args)
+        ref = getattr(geometry_volume, name)(*args)
+    return ref, getattr(compiled, name)(*args)
 
 
 def _same(ref, new):
@@ -34,16 +42,29 @@ def _same(ref, new):
 
 
 def _check(grid: Grid, triangles: np.ndarray):
-    """Every geometry_volume stage, numpy vs compiled, on ``triangles`` in ``grid``."""
+    """Every geometry_volume step, numpy vs compiled, on ``triangles`` in ``grid``."""
     spacing = geometry_volume.SURFEL_SPACING * grid.cell_size
-    _same(*_both(geometry_volume._subdivide, triangles, spacing))
+    _same(*_both("_subdivide", triangles, spacing))
     with jit.disabled():
         sub, _, normal, area = geometry_volume._subdivide(triangles, spacing)
-    ref, new = _both(geometry_volume.face_coverage, grid, sub)
+    ref, new = _both("face_coverage", grid, sub)
     _same(ref, new)
-    _same(*_both(geometry_volume.face_offsets, grid, sub, normal, area))
-    _same(*_both(geometry_volume.occluder_volume, grid, triangles))
+    _same(*_both("face_offsets", grid, sub, normal, area))
+    _same(*_both("occluder_volume", grid, triangles))
     return ref
+
+
+def test_the_stage_runs_its_twins(monkeypatch):
+    # Each function with a twin has its signature, and with the kernels on calls it.
+    grid = Grid((0.0, 0.0, 0.0), 1.0, 4)
+    args = {"_subdivide": (np.zeros((1, 3, 3)), 0.5), "face_coverage": (grid, np.zeros((1, 3, 3))),
+            "face_offsets": (grid, np.zeros((1, 3, 3)), np.zeros((1, 3)), np.zeros(1)),
+            "occluder_volume": (grid, np.zeros((1, 3, 3)))}
+    for name in TWINS:
+        assert (inspect.signature(getattr(compiled, name))
+                == inspect.signature(getattr(geometry_volume, name))), name
+        monkeypatch.setattr(compiled, name, lambda *a, name=name: name)
+        assert getattr(geometry_volume, name)(*args[name]) == name
 
 
 def _cornell(resolution: int):
@@ -112,10 +133,10 @@ def test_unsubdivided_triangles_and_slivers_match_numpy(resolution):
         axis = i % 3
         tris[i, 2] = 0.5 * (tris[i, 0] + tris[i, 1])
         tris[i, 2, (axis + 1) % 3] += 10.0 ** rng.uniform(-13, -7)
-    _same(*_both(geometry_volume.face_coverage, grid, tris))
+    _same(*_both("face_coverage", grid, tris))
     normal = rng.normal(size=(400, 3))
     area = rng.uniform(0.0, 1.0, 400)
-    _same(*_both(geometry_volume.face_offsets, grid, tris, normal, area))
+    _same(*_both("face_offsets", grid, tris, normal, area))
 
 
 @pytest.mark.parametrize("resolution", [5, 16])
@@ -154,7 +175,7 @@ def test_edges_through_samples_and_slivers_match_numpy(resolution, origin, cell)
     # (2) slivers along a row of samples, as thin as 1e-10 .. 1e-8 of their length (around
     # the edge-on threshold, 1e-9), whose tolerance-grown tips reach a sample past their
     # bounding boxes (counted only inside the largest window any triangle needs: see
-    # _cover_part).
+    # _cover_part_kernel).
     rng = np.random.default_rng(resolution)
     grid = Grid(origin, cell, resolution)
     rm = resolution * geometry_volume.COVERAGE_SAMPLES
@@ -180,7 +201,7 @@ def test_edges_through_samples_and_slivers_match_numpy(resolution, origin, cell)
             su, sv = sv, su
         tris.append(_on_samples(grid, axis, plane, su, sv))
     tris = np.array(tris)
-    _same(*_both(geometry_volume.face_coverage, grid, tris))
+    _same(*_both("face_coverage", grid, tris))
     _check(grid, tris)
 
 
@@ -190,7 +211,7 @@ def test_other_sample_counts_match_numpy(samples):
     grid, tris = _cornell(5)
     with jit.disabled():
         sub = geometry_volume._subdivide(tris, 0.5 * grid.cell_size)[0]
-    _same(*_both(geometry_volume.face_coverage, grid, sub, samples))
+    _same(*_both("face_coverage", grid, sub, samples))
 
 
 def test_empty_matches_numpy():
@@ -208,11 +229,11 @@ def test_occluder_volume_runs_match_numpy():
     tilt = wall.copy()
     tilt[0, 2, 0] += 0.3
     moved = wall + np.array([0.1, 0.0, 0.0])
-    _same(*_both(geometry_volume.occluder_volume, grid, np.concatenate([wall, wall, tilt, moved])))
+    _same(*_both("occluder_volume", grid, np.concatenate([wall, wall, tilt, moved])))
     _check(grid, np.concatenate([wall, moved, tilt, wall]))
 
 
-# occluder_volume's shortcuts (see geometry_volume's compiled section): a triangle whose
+# occluder_volume's shortcuts (see kernels/geometry_volume.py): a triangle whose
 # sub-triangles all surely go to one plane has its interior filled and only the sub-triangles
 # along edges with samples near them scanned; a triangle surely edge-on to an axis adds no
 # records there; records are scanned over their own window where no sample past it can count;
@@ -289,7 +310,7 @@ def test_fill_window_with_slivers_matches_numpy():
                                       (150.5, 150.6, 0.4 + z), (-150.3, 150.6, 0.4 + z))
                             for z in (2.0, 6.0)])
     for tris in (np.array(slivers), np.concatenate([np.array(slivers), walls])):
-        _same(*_both(geometry_volume.occluder_volume, grid, tris))
+        _same(*_both("occluder_volume", grid, tris))
 
 
 @pytest.mark.parametrize("split", [0, 1, 3, "all"])
@@ -312,8 +333,8 @@ def test_chunks_from_both_ends_match_numpy(monkeypatch, split):
 
     with jit.disabled():
         ref = geometry_volume.occluder_volume(grid, tris)
-    monkeypatch.setattr(geometry_volume, "_front_back", split_at)
-    _same(ref, geometry_volume.occluder_volume(grid, tris))
+    monkeypatch.setattr(compiled, "_front_back", split_at)
+    _same(ref, compiled.occluder_volume(grid, tris))
 
 
 def test_scratch_reuse_matches_numpy(monkeypatch):
@@ -325,16 +346,16 @@ def test_scratch_reuse_matches_numpy(monkeypatch):
     walls = _boxes(rng, Grid((0.0, 0.0, 0.0), 1.0, 16), 3, 0.5)
     for grid, tris in [(grid16, cornell16), (grid5, cornell5), (grid16, walls),
                        (grid16, cornell16)]:
-        _same(*_both(geometry_volume.occluder_volume, grid, tris))
+        _same(*_both("occluder_volume", grid, tris))
 
     def broken(*args):
         raise RuntimeError("midway")
 
-    monkeypatch.setattr(geometry_volume, "_finish_volume", broken)
+    monkeypatch.setattr(compiled, "_finish_volume_kernel", broken)
     with pytest.raises(RuntimeError):
-        geometry_volume.occluder_volume(grid16, walls)
+        compiled.occluder_volume(grid16, walls)
     monkeypatch.undo()
-    _same(*_both(geometry_volume.occluder_volume, grid16, cornell16))
+    _same(*_both("occluder_volume", grid16, cornell16))
 
 
 @pytest.mark.parametrize("seed", range(8))

@@ -1,4 +1,4 @@
-"""The compiled VPL injection (injection._splat_kernel) against the numpy reference."""
+"""The compiled VPL injection (kernels.injection) against the numpy reference."""
 
 import numpy as np
 import pytest
@@ -7,6 +7,7 @@ pytest.importorskip("numba")
 
 from lpv_core import injection
 from lpv_core.grid import Grid
+from lpv_core.kernels import injection as compiled
 from lpv_core.runtime import jit
 
 
@@ -126,10 +127,10 @@ def _splat(g, args, boxes):
     """The compiled splat run box by box into one sum grid (as the threads run the slabs):
     the float32 grid."""
     cells = g.resolution ** 3
-    acc, touched = injection._sums(cells)
+    acc, touched = compiled._sums(cells)
     out = np.full((cells, 12), np.nan, np.float32)  # every cell must be written
     for k, box in enumerate(boxes):
-        injection._splat_box(args, args[0].shape[0], acc, touched, cells + k, box, out)
+        compiled._splat_box(args, args[0].shape[0], acc, touched, cells + k, box, out)
     return out
 
 
@@ -140,7 +141,7 @@ def test_compiled_inject_slabs_are_the_one_thread_result():
     g = Grid((0.0, -0.5, 0.25), 0.125, 16)
     pos, nrm, flux = _vpls(g, 30000, rng)
     args = _grid_args(g, pos, nrm, flux, _visibility(16, rng))
-    halves = injection.split_slabs(*args[:2], *args[4:8])
+    halves = compiled.split_slabs(*args[:2], *args[4:8])
     assert halves is not None
     lo, hi = halves
     axis = int(np.argmax(lo[:, 1] < 16))
@@ -161,13 +162,13 @@ def test_split_slabs_balances_or_declines():
     n = 20000
     pos = np.column_stack([np.full(n, 10.3), rng.random(n) * 32, rng.random(n) * 32])
     nrm = np.tile([1.0, 0.0, 0.0], (n, 1))
-    lo, hi = injection.split_slabs(pos, nrm, g.origin_array, 1.0, 0.5, 32)
+    lo, hi = compiled.split_slabs(pos, nrm, g.origin_array, 1.0, 0.5, 32)
     axis = int(np.argmax(lo[:, 1] < 32))
     assert axis in (1, 2) and abs(lo[axis, 1] - 16) <= 2
     assert np.array_equal(np.delete(lo, axis, 0), np.delete(hi, axis, 0))
     one_cell = np.tile([5.2, 6.3, 7.4], (n, 1))
-    assert injection.split_slabs(one_cell, nrm, g.origin_array, 1.0, 0.5, 32) is None
-    assert injection.split_slabs(one_cell + 100.0, nrm, g.origin_array, 1.0, 0.5, 32) is None
+    assert compiled.split_slabs(one_cell, nrm, g.origin_array, 1.0, 0.5, 32) is None
+    assert compiled.split_slabs(one_cell + 100.0, nrm, g.origin_array, 1.0, 0.5, 32) is None
 
 
 @pytest.mark.parametrize("with_vis", [False, True])
@@ -176,7 +177,7 @@ def test_compiled_inject_32_cubed_two_threads(with_vis):
     walls and partly outside: the numpy reference to the last bit."""
     rng = np.random.default_rng(10 + with_vis)
     g = Grid((-1.0, -1.0, -1.0), 2.0 / 32, 32)
-    n = 2 * injection.SPLIT_MIN
+    n = 2 * compiled.SPLIT_MIN
     u, v = np.meshgrid(np.linspace(-1.1, 1.1, 128), np.linspace(-1.1, 1.1, n // 256))
     floor = np.column_stack([u.ravel(), np.full(u.size, -0.97), v.ravel()])
     wall = np.column_stack([np.full(u.size, 0.31), u.ravel(), v.ravel()])
@@ -189,7 +190,7 @@ def test_compiled_inject_32_cubed_two_threads(with_vis):
     assert np.array_equal(ref, got)
 
 
-@pytest.mark.parametrize("n", [300, 3 * injection.SPLIT_MIN])
+@pytest.mark.parametrize("n", [300, 3 * compiled.SPLIT_MIN])
 def test_compiled_inject_index_reads_rows_in_place(n):
     """``index`` injects those rows in that order, as the gathered arrays would: the numpy
     reference of the gathered arrays to the last bit, on one thread and on two."""

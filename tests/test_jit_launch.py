@@ -1,5 +1,5 @@
-"""Compiled launch (lpv_core/ordinates.py, _launch_kernel and _unfold_kernel): the same first-step
-arrivals as the numpy code, which stays the reference (jit.disabled())."""
+"""Compiled launch (lpv_core/kernels/ordinates.py, _launch_kernel and _unfold_kernel): the same
+first-step arrivals as the numpy code, which stays the reference (jit.disabled())."""
 
 import numpy as np
 import pytest

@@ -1,4 +1,4 @@
-"""The compiled lookup (lookup._irradiance_kernel, lookup._gap_kernel) gives what the numpy
+"""The compiled lookup (kernels.lookup: irradiance, gap_corrected) gives what the numpy
 code gives: 9-coefficient irradiance with and without visibility, points inside, on the
 border of and outside the grid, and the gap correction of sample points."""
 

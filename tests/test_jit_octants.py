@@ -1,4 +1,4 @@
-"""The octant sweep (lpv_core/octants.py): launch, sweep and fold of all directions of an
+"""The octant sweep (lpv_core/kernels/sweep.py): launch, sweep and fold of all directions of an
 octant at once must give what the numpy reference gives (sweep.launch_solve folded by
 sweep.fold_parts under jit.disabled()), for every combination of shell, transmittances,
 handed-on light and occluded launch, also on the 32^3 Cornell box and in the engine's
@@ -15,7 +15,9 @@ from test_jit_fused import _passing  # tests/ is on sys.path under pytest
 from test_jit_launch import _visibility, _vpls
 
 from lpv_core import propagation, sh
-from lpv_core.propagation import octants, ordinates, quadrature
+from lpv_core.kernels import ordinates as compiled_ordinates
+from lpv_core.kernels import sweep as octants
+from lpv_core.propagation import ordinates, quadrature
 from lpv_core.propagation import sweep as transport_sweep
 from lpv_core.runtime import jit
 
@@ -59,7 +61,7 @@ def test_the_octant_sweep_is_the_numpy_propagation(shell, occluded, handed_on, o
     injected = _vpls(r, seed=seed)
     visibility = _visibility(r, seed=seed + 20) if occluded else None
     passing = _passing(r, seed=seed + 40) if handed_on else None
-    got = octants._launch_sweep_fold_compiled(injected, visibility, passing, shell, occlude_launch)
+    got = octants.launch_sweep_fold(injected, visibility, passing, shell, occlude_launch)
     _assert_same(got, _reference(injected, visibility, passing, shell, occlude_launch), shell)
 
 
@@ -73,7 +75,7 @@ def test_the_octant_sweep_on_small_grids(r, shell):
     injected[0, :, -1] += np.array([1.0, 0.3, -0.4, 0.5], np.float32)  # lit faces
     passing = _passing(r, seed=r + 1)
     visibility = rng.uniform(0.3, 1.0, (6, r, r, r)).astype(np.float32)
-    got = octants._launch_sweep_fold_compiled(injected, visibility, passing, shell, True)
+    got = octants.launch_sweep_fold(injected, visibility, passing, shell, True)
     _assert_same(got, _reference(injected, visibility, passing, shell, True), shell)
 
 
@@ -82,10 +84,10 @@ def test_dark_and_handed_on_only():
     less itself."""
     r = 6
     dark = np.zeros((r, r, r, 3, 4), np.float32)
-    values, outflow = octants._launch_sweep_fold_compiled(dark, None, None, True, True)
+    values, outflow = octants.launch_sweep_fold(dark, None, None, True, True)
     assert values.shape == (r, r, r, 3, sh.BANDS2) and not values.any() and not outflow.any()
     passing = _passing(r, seed=3)
-    got = octants._launch_sweep_fold_compiled(dark, _visibility(r, seed=4), passing, True, True)
+    got = octants.launch_sweep_fold(dark, _visibility(r, seed=4), passing, True, True)
     _assert_same(got, _reference(dark, _visibility(r, seed=4), passing, True, True), True)
 
 
@@ -102,7 +104,7 @@ def test_propagate_runs_the_octant_sweep():
             want = propagation.propagate(injected, 0, **kw)
         assert got.swept and want.swept
         _assert_same((got.values, got.outflow), (want.values, want.outflow), capture)
-        values, _ = octants._launch_sweep_fold_compiled(injected, visibility, handed, capture, True)
+        values, _ = octants.launch_sweep_fold(injected, visibility, handed, capture, True)
         total = injected if handed is None else injected + handed
         ordinates.add_emission_band2(values, total)
         np.testing.assert_allclose(got.values, values, rtol=0, atol=0)
@@ -113,7 +115,8 @@ def _cornell_inputs() -> list:
     occlusion, the second cascade with handed-on light; in a fresh process also those of the
     backend's calibration, on a smaller grid)."""
     from lpv_core import engine
-    from lpv_core.scene import GISettings, demo
+    from lpv_core.scene import GISettings
+    from tools import core_scenes as demo
     from tools.bench import STATED
 
     calls = []
@@ -141,7 +144,7 @@ def test_the_cornell_box_is_the_numpy_sweep():
     for args, kwargs in calls:
         injected, visibility, occlude, capture, launch, passing = args
         assert launch and not kwargs
-        got = octants._launch_sweep_fold_compiled(injected, visibility, passing, capture, occlude)
+        got = octants.launch_sweep_fold(injected, visibility, passing, capture, occlude)
         offvis = quadrature.offset_visibilities(visibility)
         with jit.disabled():
             acc = transport_sweep.launch_solve(injected, offvis if occlude else None, passing,
@@ -156,7 +159,7 @@ def test_emission_directions_compiled_are_numpy_bits():
         injected = _vpls(r, seed=seed)
         injected[0, 0, 0] = 0.0
         injected[0, 0, 0, 0, 0] = 0.5  # lit, band 1 zero: no direction
-        cells, lit, _ = ordinates.lit_rows(injected)
+        cells, lit, _ = compiled_ordinates.lit_rows(injected)
         got = ordinates.emission_directions(cells, lit)
         with jit.disabled():
             want = ordinates.emission_directions(cells, lit)
@@ -177,24 +180,35 @@ def test_unfold_reusing_a_density_is_the_numpy_unfold():
     assert np.array_equal(got[:, 0], got[:, 2])
 
 
+def _offset_visibility_at(visibility: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """quadrature.offset_visibilities(visibility) at the flat ``cells`` only, side by side
+    (n, 27) float32: the same products in the same order, for n cells instead of R^3."""
+    v = np.asarray(visibility).reshape(6, -1)[:, cells]
+    one = np.ones((1, cells.size), v.dtype)
+    f = [np.concatenate([v[2 * a + 1][None], one, v[2 * a][None]]) for a in range(3)]
+    prod = (f[0][:, None, None] * f[1][None, :, None]) * f[2][None, None, :]
+    return np.ascontiguousarray(prod.reshape(27, -1).T.astype(np.float32))
+
+
 @pytest.mark.parametrize("r", [1, 4, 7])
 def test_compiled_inputs_are_the_numpy_ones(r):
     """The lit cells, the launch's transmittances and the handed-on cells compiled
-    (_lit_cells, _offset_visibility_kernel, _passing_cells): numpy's, bit for bit."""
+    (_lit_cells_kernel, _offset_visibility_kernel, _passing_cells_kernel): numpy's, bit for
+    bit."""
     injected = _vpls(r, seed=r + 3, count=3 * r)
     visibility = _visibility(r, seed=r + 5)
     passing = _passing(r, seed=r + 7)
     p = r + 2
-    cells, lit, rows = ordinates.lit_rows(injected)
+    cells, lit, rows = compiled_ordinates.lit_rows(injected)
     got = octants._lit_cells_kernel(cells, r)
-    _, start, _, _ = ordinates.launch_geometry(cells, lit, r, None)
+    _, start, _, _ = compiled_ordinates.launch_geometry(cells, lit, r, None)
     xyz = np.stack(np.unravel_index(start, (p, p, p)), axis=1)
     first = np.searchsorted(start, np.arange(p + 1) * p * p)
     for g, want in zip(got, (lit, rows, xyz, first), strict=True):
         np.testing.assert_array_equal(g, want)
     lvis = np.empty((lit.size, 27), np.float32)
     octants._offset_visibility_kernel(visibility, lit, lvis)
-    np.testing.assert_array_equal(lvis, octants._offset_visibility_at(visibility, lit))
+    np.testing.assert_array_equal(lvis, _offset_visibility_at(visibility, lit))
     pcells = np.ascontiguousarray(passing, np.float32).reshape(-1, 4)
     prows = np.flatnonzero(pcells[:, 0] > 0)
     cell, colour = np.divmod(prows, 3)
@@ -212,19 +226,21 @@ def test_engine_images_with_and_without_the_octant_sweep(kind, monkeypatch):
     jit.disabled()) to 1e-5 of its largest value."""
     from lpv_core import engine
     from lpv_core.render import deferred
-    from lpv_core.scene import GISettings, demo
+    from lpv_core.scene import GISettings
+    from tools import core_scenes as demo
 
     settings = GISettings().updated(grid_resolution=20, cascades=3, cascades_auto=False,
                                     bounces=2)
     scene = demo.cornell_box(kind, (32, 32), settings)
     images = []
+
     def numpy_sweep(*args):
         with jit.disabled():
             return transport_sweep.launch_sweep_fold(*args)
 
     for octant_sweep in (True, False):
         if not octant_sweep:
-            monkeypatch.setattr(octants, "_launch_sweep_fold_compiled", numpy_sweep)
+            monkeypatch.setattr(octants, "launch_sweep_fold", numpy_sweep)
         eng = engine.Engine()
         images.append(deferred.render(eng, scene, eng.update(scene))["Diffuse Indirect"])
     octant, numpy = images

@@ -10,7 +10,8 @@ pytest.importorskip("numba")
 from lpv_core import planner
 from lpv_core.grid import Grid
 from lpv_core.runtime import jit
-from lpv_core.scene import GISettings, demo
+from lpv_core.scene import GISettings
+from tools import core_scenes as demo
 
 
 def _triangles(n: int, seed: int) -> np.ndarray:

@@ -1,5 +1,6 @@
-"""The compiled RSM texel pass (rsm._vpl_kernel) against the numpy reference (texel_flux,
-lights.intensity): the same VPLs, in the same order, for every light type."""
+"""The compiled RSM texel pass (kernels.rsm.view_vpls) against the numpy reference
+(rsm.view_vpls: texel_flux, lights.intensity): the same VPLs, in the same order, for every
+light type."""
 
 import dataclasses
 
@@ -9,8 +10,10 @@ import pytest
 pytest.importorskip("numba")
 
 from lpv_core import engine, rsm
+from lpv_core.kernels import rsm as rsm_kernels
 from lpv_core.runtime import jit
-from lpv_core.scene import GISettings, demo
+from lpv_core.scene import GISettings
+from tools import core_scenes as demo
 
 
 def _rsms(light_type: str, resolution: int = 64, **light_changes):
@@ -51,8 +54,8 @@ def test_compiled_rsm_without_light_is_empty():
 
 @pytest.mark.parametrize("light_type", ["SPOT", "POINT"])
 def test_compiled_rsm_one_thread_below_split(light_type):
-    """Maps of fewer than rsm.SPLIT_MIN rows are converted on one thread: the same VPLs."""
-    ref, got = _rsms(light_type, resolution=rsm.SPLIT_MIN // 2)
+    """Maps of fewer than SPLIT_MIN rows are converted on one thread: the same VPLs."""
+    ref, got = _rsms(light_type, resolution=rsm_kernels.SPLIT_MIN // 2)
     assert ref.count > 100 and got.count == ref.count
     for field in ("position", "normal", "flux", "area"):
         a, b = getattr(got, field), getattr(ref, field)

@@ -14,7 +14,7 @@ from test_jit_fused import _passing  # tests/ is on sys.path under pytest
 from test_jit_launch import _vpls
 from test_jit_octants import _assert_same, _reference
 
-from lpv_core.propagation import octants
+from lpv_core.kernels import sweep as octants
 from lpv_core.runtime import jit
 
 pytestmark = pytest.mark.skipif(not (jit.enabled() and jit.X86),
@@ -58,7 +58,7 @@ def test_octant_sweep_through_nearly_opaque_walls():
     injected = _vpls(r, seed=5)
     passing = _passing(r, seed=6)
     visibility = (10.0 ** rng.uniform(-25, -15, (6, r, r, r))).astype(np.float32)
-    got = octants._launch_sweep_fold_compiled(injected, visibility, passing, True, True)
+    got = octants.launch_sweep_fold(injected, visibility, passing, True, True)
     want = _reference(injected, visibility, passing, True, True)
     assert np.isfinite(got[0]).all() and np.isfinite(got[1]).all()
     assert np.count_nonzero((want[0] != 0) & (np.abs(want[0]) < np.finfo(np.float32).tiny))

@@ -146,7 +146,8 @@ def test_a_grid_too_large_for_memory_is_refused_before_any_work(iterations):
     figure = "12.7"
     from lpv_core import engine
     from lpv_core.propagation import sweep
-    from lpv_core.scene import GISettings, demo
+    from lpv_core.scene import GISettings
+    from tools import core_scenes as demo
 
     ordinates.check_memory(64)  # ~0.9 GB: fine
     sweep.check_memory(64)  # ~2.4 GB: fine

@@ -7,7 +7,8 @@ import pytest
 from lpv_core import cascades, geometry_volume, injection, planner
 from lpv_core.engine import Stats
 from lpv_core.grid import Grid, fit_grid
-from lpv_core.scene import Camera, GISettings, Light, demo, make_scene
+from lpv_core.scene import Camera, GISettings, Light, make_scene
+from tools import core_scenes as demo
 
 BOX_LO, BOX_HI = np.array([4.0, -1.0, -1.0]), np.array([6.0, 1.0, 1.0])
 

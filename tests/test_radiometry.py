@@ -155,7 +155,8 @@ def test_multiple_bounces_run_with_cascades_and_converge():
     """Bounces work on a cascade chain: more bounces add light in every cascade (the inner
     one as well as the outer), each bounce less than the last."""
     from lpv_core import engine
-    from lpv_core.scene import GISettings, demo
+    from lpv_core.scene import GISettings
+    from tools import core_scenes as demo
 
     fine, coarse = [], []
     for bounces in (1, 2, 3):

@@ -6,9 +6,10 @@ reason for its bound.
 import numpy as np
 import pytest
 
-from lpv_core import cascades, engine, geometry_volume, injection, lookup
+from lpv_core import cascades, engine, geometry_volume, injection, lookup, propagation
 from lpv_core.grid import Grid, fit_grid
-from lpv_core.scene import GISettings, Light, Material, demo, make_scene
+from lpv_core.scene import GISettings, Light, Material, make_scene
+from tools import core_scenes as demo
 
 # --------------------------------------------------------------------------------------------
 # 1. The outer grid fits the geometry that matters (cascades.fit_bounds)
@@ -102,7 +103,8 @@ def test_vpls_and_receivers_outside_the_grid_are_harmless():
     flux = np.ones((3, 3))
     inj = injection.inject(g, far[:2], nrm[:2], flux[:2], visibility=vis)
     assert np.all(np.isfinite(inj)) and np.abs(inj).max() == 0.0  # left the volume
-    values = injection.inject(g, np.array([[0.5, 0.5, 0.5]]), nrm[:1], flux[:1], visibility=vis)
+    injected = injection.inject(g, np.array([[0.5, 0.5, 0.5]]), nrm[:1], flux[:1], visibility=vis)
+    values = propagation.propagate(injected, visibility=vis, launch=True).values
     e = lookup.irradiance(g, values, far, nrm, angular="dom", visibility=vis)
     assert np.all(np.isfinite(e))
     assert np.all(e[:2] == 0.0)

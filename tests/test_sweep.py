@@ -11,7 +11,8 @@ import pytest
 from lpv_core import engine, geometry_volume, injection, lookup, propagation, sh
 from lpv_core.grid import Grid
 from lpv_core.propagation import ordinates, sweep
-from lpv_core.scene import GISettings, demo
+from lpv_core.scene import GISettings
+from tools import core_scenes as demo
 
 
 def _case(r: int, seed: int = 1, wall: bool = True):

@@ -33,7 +33,8 @@ import numpy as np
 from lpv_core import engine
 from lpv_core.render import deferred
 from lpv_core.runtime import jit
-from lpv_core.scene import GISettings, demo
+from lpv_core.scene import GISettings
+from tools import core_scenes as demo
 
 
 def run(repeat: int, resolution: tuple[int, int], settings: GISettings) -> dict:

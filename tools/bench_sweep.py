@@ -46,7 +46,8 @@ from lpv_core import engine, propagation, sh
 from lpv_core.grid import Grid
 from lpv_core.propagation import kd10, ordinates, quadrature
 from lpv_core.render import deferred
-from lpv_core.scene import GISettings, demo, make_scene
+from lpv_core.scene import GISettings, make_scene
+from tools import core_scenes as demo
 
 BACKENDS = ("numpy", "gl")
 # Transport models swept, the default first ("dom"); sh (KD10) for comparison.

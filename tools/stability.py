@@ -35,7 +35,8 @@ from lpv_core import engine, propagation, sh
 from lpv_core.propagation import kd10, ordinates, quadrature
 from lpv_core.propagation import sweep as transport_sweep
 from lpv_core.render import deferred
-from lpv_core.scene import Camera, GISettings, Light, Material, Scene, demo, make_scene
+from lpv_core.scene import Camera, GISettings, Light, Material, Scene, make_scene
+from tools import core_scenes as demo
 
 # Tolerances the tests assert (and the report draws). In exact arithmetic the engine is
 # covariant under scaling (with power x scale^2) and translation, and linear in light power and

@@ -410,6 +410,7 @@ def _sphere(subdivisions: int = 2) -> tuple[np.ndarray, np.ndarray]:
              [(1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1)]]
     faces = [(0, 2, 4), (2, 1, 4), (1, 3, 4), (3, 0, 4), (2, 0, 5), (1, 2, 5), (3, 1, 5),
              (0, 3, 5)]
+
     def mid(a, b, cache):
         key = (min(a, b), max(a, b))
         if key not in cache:

@@ -508,8 +508,8 @@ def choose(ms: dict) -> dict:
 CACHE_FILE = "auto_backend.json"
 # What measure() times, relative to lpv_core (folders: their .py and .glsl files): a change to
 # any of them measures again.
-TIMED_SOURCES = ("gl", "propagation", "injection.py", "lookup.py", "sh.py", "grid.py",
-                 "runtime")
+TIMED_SOURCES = ("gl", "propagation", "kernels", "injection.py", "lookup.py", "sh.py",
+                 "grid.py", "runtime")
 _FINGERPRINT: str | None = None
 
 

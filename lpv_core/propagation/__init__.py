@@ -3,7 +3,8 @@
 - "dom" (the product, the default): each cell's injected light is unfolded into flux along 64
   fixed directions (quadrature.py), launched from where surface light leaves its surface
   (ordinates.py), and the limit of infinitely many semi-Lagrangian steps is solved in one
-  transport sweep (sweep.py; compiled: one pass per octant, octants.py). Returns bands 0-2.
+  transport sweep (sweep.py; compiled: one pass per octant, kernels/sweep.py). Returns bands
+  0-2.
 - "sh" (KD10's clamped 2-band SH, kd10.py, numpy only): the baseline, stepped ``iterations``
   times with an early stop. Returns KD10's 4 coefficients.
 

@@ -16,6 +16,7 @@ AXES = np.array([[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0,
 OFFSETS = [(a, b, c) for a in (-1, 0, 1) for b in (-1, 0, 1) for c in (-1, 0, 1)]
 # The upwind offsets of a sweep in an octant's signed coordinates (all but (0, 0, 0))
 SIGNED_OFFSETS = [(a, b, c) for a in (0, 1) for b in (0, 1) for c in (0, 1) if a + b + c]
+LAUNCH_CELLS = 0.5  # injection.inject moves a VPL this far off its surface [KD10 sec. 4.2]
 _TABLES: dict = {}
 _OFFVIS: list = []  # [(visibility array, its 27 offset transmittances)], most recent first
 OFFVIS_CACHE = 4  # visibility arrays whose offset transmittances are kept (one per cascade)

@@ -23,8 +23,9 @@ the 2 cores of this machine the many small numpy operations of a plane contended
 (16^3: 30 ms on one thread, 49 ms on two, 82 ms on four).
 
 This numpy sweep is the reference. With numba (``jit.enabled()``) ``launch_sweep_fold``, what
-the engine runs, has one compiled twin, octants.py: the same recurrence cell by cell in upwind
-order for all directions of an octant at once, launched and folded to SH as it goes.
+the engine runs, has one compiled twin, kernels/sweep.py (the octant sweep): the same
+recurrence cell by cell in upwind order for all directions of an octant at once, launched and
+folded to SH as it goes.
 """
 
 from __future__ import annotations
@@ -32,8 +33,9 @@ from __future__ import annotations
 import numpy as np
 
 from .. import sh
+from ..kernels import sweep as _compiled
 from ..runtime import jit
-from . import octants, ordinates
+from . import ordinates
 from .quadrature import DIRECTIONS, SIGNED_OFFSETS, offset_visibilities, tables
 from .result import PropagationResult, flux
 
@@ -206,6 +208,8 @@ def launch_solve(injected: np.ndarray, launch_visibility: list | None, passing: 
     if index is not None:
         acc.reshape(acc.shape[0], -1)[:, index] -= light
     return acc
+
+
 def solve(source: np.ndarray, r: int, offset_visibility: list | None,
           shell: bool = True) -> np.ndarray:
     """A = source + T A for the light ``source`` in the padded flat layout (q, 3, (R+2)^3),
@@ -255,11 +259,9 @@ def launch_sweep_fold(injected: np.ndarray, visibility: np.ndarray | None,
     (ordinates.launch), ``passing`` (the same, or None) handed on, both swept through the
     face transmittances ``visibility`` (6, R, R, R) or None, the launch occluded by them when
     ``occlude_launch``. Returns (values (R, R, R, 3, 9), outflow (R+2, R+2, R+2, 3, 4) with a
-    zero interior, or None without ``shell``). Compiled when ``jit.enabled()``
-    (octants._launch_sweep_fold_compiled: one pass per octant)."""
+    zero interior, or None without ``shell``)."""
     if jit.enabled():
-        return octants._launch_sweep_fold_compiled(injected, visibility, passing, shell,
-                                                   occlude_launch)
+        return _compiled.launch_sweep_fold(injected, visibility, passing, shell, occlude_launch)
     offvis = offset_visibilities(visibility)
     acc = launch_solve(injected, offvis if occlude_launch else None, passing, offvis, shell)
     return fold_parts(acc, injected.shape[0], shell)

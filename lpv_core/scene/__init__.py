@@ -1,6 +1,5 @@
 """The scene model the core computes on: triangles, materials, lights, camera, areas and the GI
-settings, in Blender units (model.py); light views and intensities (lights.py); the built-in
-demo scenes (demo.py)."""
+settings, in Blender units (model.py); light views and intensities (lights.py)."""
 
 from .model import (
     AREA_TYPES,

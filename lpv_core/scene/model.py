@@ -64,10 +64,6 @@ class Light:
         n = np.linalg.norm(d)
         return d / n if n > 0 else np.array([0.0, 0.0, -1.0])
 
-    def radiant_color(self) -> np.ndarray:
-        """Colour x power: W (point/spot/area) or W/m^2 (sun) per channel."""
-        return np.asarray(self.color, np.float64) * float(self.power)
-
 
 @dataclass
 class Camera:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .model import Camera, GISettings, Light, Material, Scene, make_scene
+from lpv_core.scene import Camera, GISettings, Light, Material, Scene, make_scene
 
 
 def box_triangles(lo, hi, inward: bool = False) -> np.ndarray:

@@ -1,6 +1,6 @@
-"""Octant sweep: the compiled twin of sweep.launch_sweep_fold (``_launch_sweep_fold_compiled``),
-the transport sweep of all directions of an octant at once, launched, swept and folded to SH
-slab by slab, so the per-direction light is never written out.
+"""The octant sweep: the compiled twin of sweep.launch_sweep_fold (kernels/__init__.py), the
+transport sweep of all directions of an octant at once, launched, swept and folded to SH slab
+by slab, so the per-direction light is never written out.
 
 All directions of an octant share their signs, their upwind neighbour offsets and the
 transmittances they read (``direction_tables``: the same koff); only the trilinear weights
@@ -22,10 +22,6 @@ shell: the outflow) as soon as it is swept, a row at a time into the worker's su
 light reaches are skipped. The handed-on light (``passing``) is a source, and its fold is
 taken off at the end (it is not an arrival). Layout and meaning of the result are those of
 ``sweep.fold_parts(sweep.launch_solve(...))``, whose numpy code stays the reference.
-
-Stated-quality Cornell box (32^3, two cascades), against a compiled sweep direction by
-direction: the propagation stage 61 -> 34 ms (medians of 31 updates on a shared 2-core VM);
-the same values to 2e-7 of the largest.
 """
 
 from __future__ import annotations
@@ -33,10 +29,10 @@ from __future__ import annotations
 import numpy as np
 
 from .. import sh
+from ..propagation.quadrature import DIRECTIONS, LAUNCH_CELLS, SIGNED_OFFSETS
+from ..propagation.quadrature import tables as ordinate_tables
 from ..runtime import jit, pool
-from . import ordinates
-from .quadrature import DIRECTIONS, SIGNED_OFFSETS
-from .quadrature import tables as ordinate_tables
+from .ordinates import emission_directions, launch_corners_kernel, unfold_rows_at
 
 LANES = 32  # floats per cell: 3 colours x 9 (or 7) directions, then VIS, padded to 4 x 8
 WIDE, NARROW = 9, 7  # an octant's directions per colour block (64 directions: 9 or 7)
@@ -62,12 +58,6 @@ def vis_lane(colour_lanes: int) -> int:
 def chunks(colour_lanes: int) -> int:
     """8-float vectors a cell's light and transmittances take: 4 (WIDE) or 3 (NARROW)."""
     return (vis_lane(colour_lanes) + 3 + 7) // 8
-
-
-def supported(q: int | None = None) -> bool:
-    """Whether every octant of the q directions fits a colour block (64: 7 or 9 each)."""
-    groups = ordinate_tables(q)[2]
-    return all(sl.stop - sl.start <= WIDE for sl, _ in groups)
 
 
 def direction_tables() -> dict:
@@ -403,10 +393,10 @@ def _add_clear(typingctx, dst, d, src, s):
 
 
 def _launch_fractions(builder, d, m, signs):
-    """ordinates._launch_direction_kernel's float32 arithmetic, one lane per direction (GEOMETRY
-    lanes, the same operations in the same order): per axis the fraction towards the far
-    corner, and where the corners are the octant's own (base 0 on its positive axes, -1 on
-    its negative ones)."""
+    """launch_corners_kernel's float32 arithmetic (kernels/ordinates.py), one lane per
+    direction (GEOMETRY lanes, the same operations in the same order): per axis the fraction
+    towards the far corner, and where the corners are the octant's own (base 0 on its
+    positive axes, -1 on its negative ones)."""
     ir, cgutils = _ir()
     n = GEOMETRY
     vt = ir.VectorType(ir.FloatType(), n)
@@ -428,7 +418,7 @@ def _launch_fractions(builder, d, m, signs):
     sqrt = cgutils.get_or_insert_function(builder.module, ir.FunctionType(vt, [vt]),
                                           f"llvm.sqrt.v{n}f32")
     sin = builder.call(sqrt, [sq])
-    t = builder.fdiv(const(ordinates.LAUNCH_CELLS), vmax(vmax(cos, sin), const(1e-6)))
+    t = builder.fdiv(const(LAUNCH_CELLS), vmax(vmax(cos, sin), const(1e-6)))
     scale = builder.select(builder.fcmp_ordered(">", cos, const(0.0)), t, const(0.0))
     fracs, own = [], None
     for a in range(3):
@@ -526,18 +516,18 @@ _launch_w, _launch_n = _launch_intrinsic(WIDE), _launch_intrinsic(NARROW)
 def _scatter_direction_kernel(flux, m, xyz, dirs, lvis, e, j, dd, w, ring, live, p, lo, hi,
                        sx, sy, sz):  # pragma: no cover - compiled
     """The launch of lit cell e along direction j (lane dd of its octant, colour block w;
-    ``flux`` its rows (n, 3 GEOMETRY)) added corner by corner: ordinates._launch_direction_kernel
-    for one (cell, direction), for the few whose corners are not the octant's own
-    (``_launch_lanes``). Targets in slabs outside lo..hi-1 (the shell, when it is not swept)
-    are dropped; the rows reached are marked in ``live``."""
+    ``flux`` its rows (n, 3 GEOMETRY)) added corner by corner: the compiled ordinates.launch
+    (kernels/ordinates.py) for one (cell, direction), for the few whose corners are not the
+    octant's own (``_launch_lanes``). Targets in slabs outside lo..hi-1 (the shell, when it
+    is not swept) are dropped; the rows reached are marked in ``live``."""
     has_vis = lvis.shape[1] > 0
     one = np.float32(1.0)
     pp = p * p
     n = hi - lo
     x, y, z = xyz[e, 0], xyz[e, 1], xyz[e, 2]
     f0, f1, f2 = flux[e, dd], flux[e, GEOMETRY + dd], flux[e, 2 * GEOMETRY + dd]
-    bx, by, bz, fx, fy, fz = ordinates.launch_corners_kernel(dirs[j, 0], dirs[j, 1], dirs[j, 2],
-                                                      m[e, 0], m[e, 1], m[e, 2])
+    bx, by, bz, fx, fy, fz = launch_corners_kernel(dirs[j, 0], dirs[j, 1], dirs[j, 2],
+                                                   m[e, 0], m[e, 1], m[e, 2])
     for cx in range(2):
         u = x + bx + cx - lo if sx > 0 else hi - 1 - x - bx - cx
         if u < 0 or u >= n:
@@ -795,7 +785,9 @@ def _octant_kernel(o, sign, span, factors, basis, odirs, flux, m, xyz, dirs, lvi
             live[sc, j] = min(live[sc, j], k - lo if sz > 0 else hi - 1 - k)
         _sweep_slab_kernel(ring, live, sc, (ii + RING - 1) % RING, i, shell and ii == 0, sy, sz, p,
                     shell, wide, fac, bas, values, outflow, row_values, row_outflow)
-def _launch_sweep_fold_compiled(injected: np.ndarray, visibility: np.ndarray | None,
+
+
+def launch_sweep_fold(injected: np.ndarray, visibility: np.ndarray | None,
                       passing: np.ndarray | None = None, shell: bool = True,
                       occlude_launch: bool = True) -> tuple:
     """sweep.launch_sweep_fold compiled: the propagation of sweep.launch_solve folded as
@@ -925,8 +917,8 @@ def _direction_lanes(octant_stride: int) -> np.ndarray:
 
 
 def _launch_inputs(injected: np.ndarray, visibility: np.ndarray | None) -> dict:
-    """The lit cells' launch (ordinates.launch_inputs in the octants' layout): "launch" =
-    (flux per octant, lit cell and colour in GEOMETRY lanes (8, n, 3 GEOMETRY), emission
+    """The lit cells' launch (kernels/ordinates.py's launch_inputs in the octants' layout):
+    "launch" = (flux per octant, lit cell and colour in GEOMETRY lanes (8, n, 3 GEOMETRY), emission
     directions (n, 3), padded cells (n, 3), directions (q, 3), transmittances (n, 27) or
     (n, 0): the launch's occlusion, from ``visibility``), and "lit_first": the first lit
     cell of each slab ((R+3,), the lit cells in flat order)."""
@@ -936,9 +928,9 @@ def _launch_inputs(injected: np.ndarray, visibility: np.ndarray | None) -> dict:
     # lanes past an octant's directions are left as they are: _launch_lanes never reads them
     flux = np.empty((8, lit.size, 3 * GEOMETRY), np.float32)
     dirs = ordinate_tables()[0]
-    ordinates._unfold_rows_compiled(cells, rows, np.arange(rows.size) * GEOMETRY, dirs, flux,
-                                    _direction_lanes(lit.size * 3 * GEOMETRY))
-    m = ordinates.emission_directions(cells, lit)
+    unfold_rows_at(cells, rows, np.arange(rows.size) * GEOMETRY, dirs, flux,
+                   _direction_lanes(lit.size * 3 * GEOMETRY))
+    m = emission_directions(cells, lit)
     lvis = np.zeros((lit.size, 0), np.float32)
     if visibility is not None:
         lvis = np.empty((lit.size, 27), np.float32)
@@ -948,9 +940,9 @@ def _launch_inputs(injected: np.ndarray, visibility: np.ndarray | None) -> dict:
 
 @jit.kernel
 def _lit_cells_kernel(cells, r):  # pragma: no cover - compiled
-    """ordinates.lit_rows and launch_geometry's cells, compiled: (lit cells (n,), their 3 n
-    (cell, colour) rows, padded cells (n, 3), the first lit cell of each padded slab
-    (R+3,)); lit where the colours' band 0 sum (in order) is > 0."""
+    """kernels/ordinates.py's lit_rows and launch_geometry's cells, compiled: (lit cells
+    (n,), their 3 n (cell, colour) rows, padded cells (n, 3), the first lit cell of each
+    padded slab (R+3,)); lit where the colours' band 0 sum (in order) is > 0."""
     p = r + 2
     total = r * r * r
     zero = np.float32(0.0)
@@ -978,8 +970,8 @@ def _lit_cells_kernel(cells, r):  # pragma: no cover - compiled
 
 @jit.kernel
 def _offset_visibility_kernel(faces, cells, out):  # pragma: no cover - compiled
-    """``_offset_visibility_at`` (float32 ``faces`` (6, R, R, R)) into out (n, 27): the same
-    products in the same order."""
+    """quadrature.offset_visibilities(faces) (float32 (6, R, R, R)) at the flat ``cells``
+    only, side by side into out (n, 27): the same products in the same order."""
     flat = faces.reshape(6, -1)
     one = np.float32(1.0)
     for e in range(cells.shape[0]):
@@ -994,16 +986,6 @@ def _offset_visibility_kernel(faces, cells, out):  # pragma: no cover - compiled
                     out[e, (a * 3 + b) * 3 + d] = ab * f2[d]
 
 
-def _offset_visibility_at(visibility: np.ndarray, cells: np.ndarray) -> np.ndarray:
-    """quadrature.offset_visibilities(visibility) at the flat ``cells`` only, side by side
-    (n, 27) float32: the same products in the same order, for n cells instead of R^3."""
-    v = np.asarray(visibility).reshape(6, -1)[:, cells]
-    one = np.ones((1, cells.size), v.dtype)
-    f = [np.concatenate([v[2 * a + 1][None], one, v[2 * a][None]]) for a in range(3)]
-    prod = (f[0][:, None, None] * f[1][None, :, None]) * f[2][None, None, :]
-    return np.ascontiguousarray(prod.reshape(27, -1).T.astype(np.float32))
-
-
 def _passing_inputs(passing: np.ndarray | None, r: int) -> tuple:
     """The handed-on light in the octants' layout: (padded flat cells (m,), colours (m,),
     flux per octant and (cell, colour) in GEOMETRY lanes (8, m, GEOMETRY), 0 past the
@@ -1015,9 +997,8 @@ def _passing_inputs(passing: np.ndarray | None, r: int) -> tuple:
     cells = np.ascontiguousarray(passing, np.float32).reshape(-1, 4)
     rows, pcell, colour, first = _passing_cells_kernel(cells, r)
     flux = np.zeros((8, rows.size, GEOMETRY), np.float32)
-    ordinates._unfold_rows_compiled(cells, rows, np.arange(rows.size) * GEOMETRY,
-                                    ordinate_tables()[0], flux,
-                                    _direction_lanes(rows.size * GEOMETRY))
+    unfold_rows_at(cells, rows, np.arange(rows.size) * GEOMETRY, ordinate_tables()[0], flux,
+                   _direction_lanes(rows.size * GEOMETRY))
     return pcell, colour, flux, first
 
 
