@@ -16,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from .. import sh
+from ..scene.model import ANGULAR_MODELS
 from . import kd10
 from . import sweep as transport_sweep
 from .ordinates import first_arrivals
@@ -33,7 +34,6 @@ __all__ = [
     "propagate",
 ]
 
-ANGULAR_MODELS = ("dom", "sh")
 
 
 def coefficients(angular: str) -> int:

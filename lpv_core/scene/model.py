@@ -138,7 +138,7 @@ class GISettings:
         return dataclasses.replace(self, **values)
 
 
-ANGULAR_MODELS = ("dom", "sh")  # propagation.ANGULAR_MODELS
+ANGULAR_MODELS = ("dom", "sh")  # the transport models (propagation/)
 RETIRED_SETTINGS = {
     "reprojection": "KD10's re-projection (side faces re-emit along their normal) is the only "
                     "one; remove the setting",
