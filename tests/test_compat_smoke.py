@@ -207,3 +207,19 @@ def test_smoke(line: str, runs, reference_frame: Path) -> None:
           f"peak: {max(errors.values()):.2e}")
     bad = {k: f"{v:.2e}" for k, v in errors.items() if not v < TOLERANCE}
     assert not bad, f"{line}: channels differ from the main venv's frame: {bad}"
+
+
+def test_manifest_validates_with_the_oldest_supported_blender() -> None:
+    """Blender 4.2 LTS's own extension tool (from .venv-bpy42's bpy) accepts the manifest, as
+    the main venv's 5.3 does (tests/test_extension.py)."""
+    if not BPY42.is_file():
+        pytest.fail(f"{BPY42} is missing: run `bash tools/setup.sh` (it makes .venv-bpy42)")
+    code = ("import sys; sys.path.insert(0, sys.argv[1]); "
+            "from tools.build_extension import find_blender_ext, validate; "
+            "print(find_blender_ext()); print(validate())")
+    proc = subprocess.run([str(BPY42), "-c", code, str(ROOT)], capture_output=True, text=True,
+                          timeout=TIMEOUT, env=_env(ROOT / ".cache"), check=False)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    tool, *rest = proc.stdout.splitlines()
+    assert "/bpy/4.2/" in tool, tool
+    assert "Success" in "\n".join(rest), proc.stdout
