@@ -15,7 +15,7 @@ import pytest
 from conftest import ROOT
 
 from lpv_core.scene import GISettings
-from tools import bench_sweep
+from tools import bench_sweep, dom_steps
 
 QUICK_KEYS = ("full_update_ms", "light_intensity_tweak_ms", "one_light_moved_ms",
               "camera_in_cell_ms")
@@ -181,7 +181,7 @@ def test_step_counts_dom_follow_the_algorithm():
 
 def test_dom_step_is_the_propagation_loop():
     """bench_sweep.dom_step (what the dense dom rows time) is one step of
-    ordinates.propagate_steps: the same result after the same number of steps."""
+    dom_steps.propagate_steps: the same result after the same number of steps."""
     from lpv_core.propagation import ordinates, quadrature
 
     rng = np.random.default_rng(3)
@@ -190,7 +190,7 @@ def test_dom_step_is_the_propagation_loop():
     injected[2:4, 1:5, 3, :, 0] = 1.0
     injected[2:4, 1:5, 3, :, 3] = 0.5
     vis = rng.uniform(0.5, 1.0, (6, r, r, r)).astype(np.float32)
-    ref = ordinates.propagate_steps(injected, 3, min_fraction=0.0, visibility=vis,
+    ref = dom_steps.propagate_steps(injected, 3, min_fraction=0.0, visibility=vis,
                                     occlude_first_step=True)
     cur = ordinates.pad(ordinates.unfold(injected))
     acc = np.zeros_like(cur)

@@ -6,6 +6,7 @@ import pytest
 
 from lpv_core import grid, injection, propagation, sh
 from lpv_core.propagation import emission, ordinates, quadrature
+from tools import dom_steps
 
 
 def _random_moments(r=8, seed=3):
@@ -58,11 +59,11 @@ def test_unfold_keeps_the_flux_sends_nothing_behind_an_emitter_and_folds_back():
 def test_step_conserves_flux_and_respects_occluders():
     flux = ordinates.unfold(_random_moments())
     before = flux.sum()
-    out = ordinates.step(flux)
+    out = dom_steps.step(flux)
     np.testing.assert_allclose(out.sum(), before, rtol=1e-5)  # nothing reached the border
     closed = np.zeros((6, 8, 8, 8), np.float32)  # every face blocks
     offvis = quadrature.offset_visibilities(closed)
-    out = ordinates.step(flux, offvis)
+    out = dom_steps.step(flux, offvis)
     live = flux.sum(axis=(0, 1)) > 0
     # Only the "stay" share (offset 0, no face crossed) survives, in the cells it left.
     assert np.all(out.sum(axis=(0, 1))[~live] == 0)
@@ -80,7 +81,7 @@ def test_beams_cross_without_merging():
     flux[a, :, 2, 8, 8] = 1.0
     flux[b, :, 8, 2, 8] = 1.0
     for _ in range(12):
-        flux = ordinates.step(flux)
+        flux = dom_steps.step(flux)
     assert set(np.nonzero(flux.sum(axis=(1, 2, 3, 4)))[0]) == {a, b}
     np.testing.assert_allclose(flux[a].sum(), 3.0, rtol=1e-3)  # a sliver spreads out
     np.testing.assert_allclose(flux[b].sum(), 3.0, rtol=1e-3)
@@ -110,13 +111,13 @@ def test_outflow_plus_what_stays_plus_absorbed_is_the_injected_flux(occluded):
 def test_the_steps_stop_once_a_step_moves_little_and_never_gain_energy():
     """The stepping reference (propagate_steps, what a stepping backend is checked against)."""
     values = _random_moments()
-    res = ordinates.propagate_steps(values, 500, min_fraction=1e-3)
+    res = dom_steps.propagate_steps(values, 500, min_fraction=1e-3)
     assert res.stopped_early and res.remaining_fraction < 1e-3
     assert res.iterations < 500
     flux = ordinates.unfold(values)
     last = flux.sum()
     for _ in range(40):
-        flux = ordinates.step(flux)
+        flux = dom_steps.step(flux)
         now = flux.sum()
         assert now <= last * (1 + 1e-6)
         last = now
@@ -127,12 +128,12 @@ def test_large_grids_keep_weights_and_transmittances_apart_with_the_same_result(
     the step multiplies by both instead and must give the same light."""
     values = _random_moments()
     vis = np.random.default_rng(9).uniform(0.3, 1.0, (6, 8, 8, 8)).astype(np.float32)
-    fused = ordinates.propagate_steps(values, 12, min_fraction=0.0, visibility=vis,
+    fused = dom_steps.propagate_steps(values, 12, min_fraction=0.0, visibility=vis,
                                       occlude_first_step=True)
     monkeypatch.setattr(ordinates, "FACTOR_TABLE_BYTES", 0)
     table = ordinates.factors(8, quadrature.offset_visibilities(vis))
     assert all(v is not None for _, row in table for _, _, v in row)
-    apart = ordinates.propagate_steps(values, 12, min_fraction=0.0, visibility=vis,
+    apart = dom_steps.propagate_steps(values, 12, min_fraction=0.0, visibility=vis,
                                       occlude_first_step=True)
     np.testing.assert_allclose(apart.values, fused.values, rtol=1e-5,
                                atol=1e-6 * np.abs(fused.values).max())

@@ -1,5 +1,5 @@
 """The transport sweep (lpv_core/sweep.py): the discrete-ordinates propagation solved in one
-ordered pass must be the limit of the steps (ordinates.propagate_steps, the stepping
+ordered pass must be the limit of the steps (dom_steps.propagate_steps, the stepping
 reference), conserve flux, respect walls, and be what the engine runs whatever the iterations
 setting."""
 
@@ -13,6 +13,7 @@ from lpv_core.grid import Grid
 from lpv_core.propagation import ordinates, sweep
 from lpv_core.scene import GISettings
 from tools import core_scenes as demo
+from tools import dom_steps
 
 
 def _case(r: int, seed: int = 1, wall: bool = True):
@@ -46,7 +47,7 @@ def test_the_sweep_is_the_limit_of_the_steps(first, capture_outflow, occluded):
           "launch": first.startswith("launch")}
     if first == "launch+passing":
         kw["passing"] = 0.3 * _case(r, seed=5, wall=False)[0]
-    steps = ordinates.propagate_steps(inj, 40 * r, min_fraction=0.0, **kw)
+    steps = dom_steps.propagate_steps(inj, 40 * r, min_fraction=0.0, **kw)
     assert steps.remaining_fraction < 1e-7  # the reference has converged
     swept = propagation.propagate(inj, 0, angular="dom", **kw)
     assert swept.swept and swept.iterations == 0 and not steps.swept

@@ -16,7 +16,7 @@ What is measured, and why this way:
   lighting, only the cost changes); lights by replicating the demo spot light.
 * **Propagation microbenchmark** (:func:`propagation_sweep`): one step on a *dense* grid (every
   cell lit, with visibility; dom also without), per backend and angular model: ``kd10.step``
-  for sh, one step of ``ordinates.propagate_steps``' loop for dom (:func:`dom_step`:
+  for sh, one step of ``dom_steps.propagate_steps``' loop for dom (:func:`dom_step`:
   ``ordinates.advance``, the shell, the accumulation and the flux sum). The engine's
   propagation is sparse (dom skips the cells without light), so this is the worst case and
   the one the roofline applies to.
@@ -48,6 +48,7 @@ from lpv_core.propagation import kd10, ordinates, quadrature
 from lpv_core.render import deferred
 from lpv_core.scene import GISettings, make_scene
 from tools import core_scenes as demo
+from tools import dom_steps
 
 BACKENDS = ("numpy", "gl")
 # Transport models swept, the default first ("dom"); sh (KD10) for comparison.
@@ -258,7 +259,7 @@ def step_counts(resolution: int, angular: str = "dom", visibility: bool = True) 
 
     * sh: 30 face evaluations (2 x 4 x 30), clamp / sum / rescale (~95), six 5 -> 4
       re-projections (6 x 2 x 5 x 4), visibility (24) and the shift-adds (24).
-    * dom: one step of ordinates.propagate_steps' loop (:func:`dom_step`) on the padded
+    * dom: one step of dom_steps.propagate_steps' loop (:func:`dom_step`) on the padded
       flat layout ((R + 2)^3 cells of q = 64 directions x 3 colours): the advection, 64
       directions x 8 neighbour offsets x (1 multiply by weight x transmittance + 1 add) over
       the flat range of cells holding light (for a dense grid (R - 1)((R+2)^2 + (R+2) + 1) + 1
@@ -367,11 +368,11 @@ def _dense_dom(r: int, rng) -> np.ndarray:
 
 
 def dom_step(cur: np.ndarray, acc: np.ndarray, table: list, r: int) -> tuple[np.ndarray, float]:
-    """One step of ordinates.propagate_steps' loop on the padded flat layout: advance
+    """One step of dom_steps.propagate_steps' loop on the padded flat layout: advance
     every direction one cell (ordinates.advance), empty the shell (what left the grid; no
     outflow kept), accumulate, and sum the moved flux in float64 (the early-stop test).
-    Returns the new state and the moved flux (ordinates.loop_step, the loop's own step)."""
-    return ordinates.loop_step(cur, table, r, acc)
+    Returns the new state and the moved flux (dom_steps.loop_step, the loop's own step)."""
+    return dom_steps.loop_step(cur, table, r, acc)
 
 
 def _cases(angulars):

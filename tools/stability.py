@@ -37,6 +37,7 @@ from lpv_core.propagation import sweep as transport_sweep
 from lpv_core.render import deferred
 from lpv_core.scene import Camera, GISettings, Light, Material, Scene, make_scene
 from tools import core_scenes as demo
+from tools import dom_steps
 
 # Tolerances the tests assert (and the report draws). In exact arithmetic the engine is
 # covariant under scaling (with power x scale^2) and translation, and linear in light power and
@@ -650,7 +651,7 @@ def _propagate_storage(injected: np.ndarray, steps: int, dtype,
     """sum_k P^k(I0) with the grid stored in ``dtype`` between steps (compute in float32).
     angular="dom": the per-direction flux is what is stored between steps."""
     dom = angular == "dom"
-    advance = ordinates.step if dom else kd10.step
+    advance = dom_steps.step if dom else kd10.step
     with np.errstate(over="ignore", invalid="ignore"):
         cur = (ordinates.unfold(injected) if dom else injected).astype(dtype)
     acc = np.zeros_like(cur) if dom else cur.copy()
