@@ -47,11 +47,11 @@ def _subdivide(positions: np.ndarray, spacing: float):
     64 x 64 split per triangle), and the triangle each came from (N,), its unit normal (N, 3)
     and its area (N,). A triangle gets k^2 equal sub-triangles (k from its longest edge): exact
     area, even coverage, no randomness."""
-    if jit.enabled():
-        return _compiled._subdivide(positions, spacing)
     p = np.asarray(positions, np.float64).reshape(-1, 3, 3)
     if p.shape[0] == 0:
         return np.zeros((0, 3, 3)), np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0)
+    if jit.enabled():
+        return _compiled._subdivide(p, spacing)
     normal, area2, k = _splits(p, spacing)
     out_t, out_i, out_n, out_a = [], [], [], []
     for kk in np.unique(k):
@@ -114,14 +114,14 @@ def face_coverage(grid: Grid, sub_triangles: np.ndarray, samples: int = COVERAGE
     A sample point counts as covered when it lies in (or on the edge of: no cracks between
     the triangles of a mesh) the projection of a sub-triangle assigned to that plane.
     """
-    if jit.enabled():
-        return _compiled.face_coverage(grid, sub_triangles, samples)
     r = grid.resolution
     m = int(samples)
     out = np.zeros((3, r + 1, r, r))
     tri = np.asarray(sub_triangles, np.float64).reshape(-1, 3, 3)
     if tri.shape[0] == 0:
         return out
+    if jit.enabled():
+        return _compiled.face_coverage(grid, tri, m, out)
     rel = (tri - grid.origin_array) / grid.cell_size  # cell units
     centroid = (rel[:, 0] + rel[:, 1] + rel[:, 2]) / 3.0
     for axis in range(3):
@@ -200,13 +200,13 @@ def face_offsets(grid: Grid, sub_triangles: np.ndarray, normals: np.ndarray,
     """(3, R + 1, R, R) mean signed distance, in cells, from each face plane to the occluding
     surface face_coverage put on it (weighted by projected area; 0 where none): where the
     surface really is, in [-1/2, 1/2] of a cell around the plane that stands for it."""
-    if jit.enabled():
-        return _compiled.face_offsets(grid, sub_triangles, normals, areas)
     r = grid.resolution
     out = np.zeros((3, r + 1, r, r))
     tri = np.asarray(sub_triangles, np.float64).reshape(-1, 3, 3)
     if tri.shape[0] == 0:
         return out
+    if jit.enabled():
+        return _compiled.face_offsets(grid, tri, normals, areas, out)
     centroid = ((tri - grid.origin_array) / grid.cell_size).mean(axis=1)
     cells = (r + 1) * r * r
     for axis in range(3):

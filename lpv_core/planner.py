@@ -374,14 +374,14 @@ def _tri_box_overlap(tris: np.ndarray, lo, hi) -> np.ndarray:
 
     Separating axis test (Akenine-Moller 2001): box axes, the triangle's normal and the 9
     edge x box-axis crosses; touching counts as overlapping."""
-    if jit.enabled():
-        return _compiled._tri_box_overlap(tris, lo, hi)
     tris = np.asarray(tris, np.float64).reshape(-1, 3, 3)
     out = np.zeros(tris.shape[0], bool)
     centre = 0.5 * (np.asarray(lo, np.float64) + np.asarray(hi, np.float64))
     h = 0.5 * (np.asarray(hi, np.float64) - np.asarray(lo, np.float64))
     if np.any(h < 0):
         return out
+    if jit.enabled():
+        return _compiled._tri_box_overlap(tris, centre, h, out)
     for s in range(0, tris.shape[0], _CHUNK):
         v = tris[s:s + _CHUNK] - centre
         v0, v1, v2 = v[:, 0], v[:, 1], v[:, 2]  # column-wise: much faster than axis reductions
@@ -439,9 +439,9 @@ def _clip(poly: np.ndarray, count: np.ndarray, normal, offset: float):
 
 def _clip_to_box(tris: np.ndarray, lo, hi):
     """Triangles (T, 3, 3) clipped to the box: polygons (T, M, 3) and vertex counts (T,)."""
-    if jit.enabled():
-        return _compiled._clip_to_box(tris, lo, hi)
     poly = np.asarray(tris, np.float64).reshape(-1, 3, 3)
+    if jit.enabled():
+        return _compiled._clip_to_box(poly, lo, hi)
     count = np.full(poly.shape[0], 3, np.int64)
     for a in range(3):
         unit = np.zeros(3)
@@ -458,18 +458,15 @@ def _cone_hits(poly: np.ndarray, count: np.ndarray, apex, axis, half: float) -> 
     half >= 90 deg: the unlit set is a convex cone around -axis, so a polygon is unlit only
     if all its vertices are. Below: the part in front of the apex, projected centrally onto
     the plane at distance 1, is a convex polygon; the cone is the disc of radius tan(half)."""
-    if jit.enabled() and half < 0.5 * np.pi:
-        return _compiled._cone_hits(poly, count, apex, axis, half)
     apex = np.asarray(apex, np.float64)
     axis = np.asarray(axis, np.float64)
     if poly.shape[0] == 0:
         return np.zeros(0, bool)
     valid = np.arange(poly.shape[1])[None, :] < count[:, None]
     rel = poly - apex
-    dist = np.linalg.norm(rel, axis=2)
-    along = rel @ axis
     if half >= 0.5 * np.pi:
-        lit = along > np.cos(half) * dist  # strictly outside the unlit cone
+        dist = np.linalg.norm(rel, axis=2)
+        lit = rel @ axis > np.cos(half) * dist  # strictly outside the unlit cone
         lit |= dist <= 0  # the apex itself: kept (conservative)
         return np.any(valid & lit, axis=1)
     # keep the part in front of the apex; closer than 2^-40 of the scene never rasterises
@@ -479,6 +476,8 @@ def _cone_hits(poly: np.ndarray, count: np.ndarray, apex, axis, half: float) -> 
     u = cross3(axis, helper)
     u /= np.linalg.norm(u)
     w = cross3(axis, u)
+    if jit.enabled():
+        return _compiled._cone_hits(poly, count, apex, axis, half, offset, u, w)
     poly, count = _clip(poly, count, -axis, offset)
     if poly.shape[0] == 0 or count.max() == 0:
         return np.zeros(poly.shape[0], bool)

@@ -5,7 +5,6 @@ Coverage is a count of samples and the kernels repeat the numpy arithmetic opera
 operation (same edge tolerances, plane rule and sample window), so every output must match
 exactly, not just to within a sample."""
 
-import inspect
 
 import numpy as np
 import pytest
@@ -26,10 +25,12 @@ TWINS = ("_subdivide", "face_coverage", "face_offsets", "occluder_volume")
 
 
 def _both(name, *args):
-    """(numpy reference's result, compiled twin's result) of the function ``name`` on args."""
+    """(numpy reference's result, compiled twin's result) of the stage function ``name`` on
+    args: the stage with the kernels off, then on (it then prepares the inputs and runs the
+    twin: test_the_stage_runs_its_twins)."""
     with jit.disabled():
         ref = getattr(geometry_volume, name)(*args)
-    return ref, getattr(compiled, name)(*args)
+    return ref, getattr(geometry_volume, name)(*args)
 
 
 def _same(ref, new):
@@ -55,14 +56,12 @@ def _check(grid: Grid, triangles: np.ndarray):
 
 
 def test_the_stage_runs_its_twins(monkeypatch):
-    # Each function with a twin has its signature, and with the kernels on calls it.
+    # With the kernels on, each function with a twin calls it (on the inputs it prepared).
     grid = Grid((0.0, 0.0, 0.0), 1.0, 4)
     args = {"_subdivide": (np.zeros((1, 3, 3)), 0.5), "face_coverage": (grid, np.zeros((1, 3, 3))),
             "face_offsets": (grid, np.zeros((1, 3, 3)), np.zeros((1, 3)), np.zeros(1)),
             "occluder_volume": (grid, np.zeros((1, 3, 3)))}
     for name in TWINS:
-        assert (inspect.signature(getattr(compiled, name))
-                == inspect.signature(getattr(geometry_volume, name))), name
         monkeypatch.setattr(compiled, name, lambda *a, name=name: name)
         assert getattr(geometry_volume, name)(*args[name]) == name
 

@@ -50,13 +50,10 @@ COVERAGE_SAMPLES = 8  # sample points per face edge (geometry_volume.face_covera
 SURFEL_SPACING = 0.5  # sub-triangle length, in cells (geometry_volume._subdivide)
 
 
-def _subdivide(positions: np.ndarray, spacing: float):
-    """geometry_volume._subdivide: the same sub-triangles in the same order (grouped by k,
-    ascending, then by triangle), written by _subdivide_kernel straight into the output
-    arrays (no per-k einsum and repeats)."""
-    p = np.asarray(positions, np.float64).reshape(-1, 3, 3)
-    if p.shape[0] == 0:
-        return np.zeros((0, 3, 3)), np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros(0)
+def _subdivide(p: np.ndarray, spacing: float):
+    """geometry_volume._subdivide of its float64 triangles p (T > 0, 3, 3): the same
+    sub-triangles in the same order (grouped by k, ascending, then by triangle), written by
+    _subdivide_kernel straight into the output arrays (no per-k einsum and repeats)."""
     normal, area2, k = _splits(p, spacing)
     k = np.where(k >= 1, k, 0)  # (a non-finite triangle: none, where numpy's path would fail)
     order = np.argsort(k, kind="stable")  # np.unique's groups, each in triangle order
@@ -83,15 +80,11 @@ def _splits(p: np.ndarray, spacing: float):
     return normal, area2, k
 
 
-def face_coverage(grid: Grid, sub_triangles: np.ndarray, samples: int = COVERAGE_SAMPLES):
-    """geometry_volume.face_coverage: _project_subs_kernel's records and window, then the
-    planes' coverage in parts on the pool."""
+def face_coverage(grid: Grid, tri: np.ndarray, m: int, out: np.ndarray) -> np.ndarray:
+    """geometry_volume.face_coverage of its float64 sub-triangles tri (N > 0, 3, 3), m x m
+    samples per face, into its zeroed ``out``: _project_subs_kernel's records and window,
+    then the planes' coverage in parts on the pool."""
     r = grid.resolution
-    m = int(samples)
-    out = np.zeros((3, r + 1, r, r))
-    tri = np.asarray(sub_triangles, np.float64).reshape(-1, 3, 3)
-    if tri.shape[0] == 0:
-        return out
     rec = np.empty((3, tri.shape[0], _RECORD))
     nrec = np.zeros((1, 3), np.int64)
     windows = np.zeros((1, 3, 2))
@@ -109,14 +102,11 @@ def face_coverage(grid: Grid, sub_triangles: np.ndarray, samples: int = COVERAGE
     return out
 
 
-def face_offsets(grid: Grid, sub_triangles: np.ndarray, normals: np.ndarray,
-                 areas: np.ndarray) -> np.ndarray:
-    """geometry_volume.face_offsets: its sums by _offsets_kernel, divided as numpy divides."""
+def face_offsets(grid: Grid, tri: np.ndarray, normals: np.ndarray, areas: np.ndarray,
+                 out: np.ndarray) -> np.ndarray:
+    """geometry_volume.face_offsets of its float64 sub-triangles tri (N > 0, 3, 3), into its
+    zeroed ``out``: the sums by _offsets_kernel, divided as numpy divides."""
     r = grid.resolution
-    out = np.zeros((3, r + 1, r, r))
-    tri = np.asarray(sub_triangles, np.float64).reshape(-1, 3, 3)
-    if tri.shape[0] == 0:
-        return out
     total = np.zeros((3, r + 1, r, r))
     moment = np.zeros((3, r + 1, r, r))
     _offsets_kernel(np.ascontiguousarray(tri), np.ascontiguousarray(normals, np.float64),

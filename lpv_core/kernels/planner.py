@@ -7,47 +7,30 @@ from __future__ import annotations
 import numpy as np
 
 from ..runtime import jit
-from ..scene.model import cross3
 
 
-def _tri_box_overlap(tris: np.ndarray, lo, hi) -> np.ndarray:
-    """planner._tri_box_overlap by ``_tri_box_kernel``."""
-    tris = np.asarray(tris, np.float64).reshape(-1, 3, 3)
-    out = np.zeros(tris.shape[0], bool)
-    centre = 0.5 * (np.asarray(lo, np.float64) + np.asarray(hi, np.float64))
-    h = 0.5 * (np.asarray(hi, np.float64) - np.asarray(lo, np.float64))
-    if np.any(h < 0):
-        return out
+def _tri_box_overlap(tris: np.ndarray, centre: np.ndarray, h: np.ndarray,
+                     out: np.ndarray) -> np.ndarray:
+    """planner._tri_box_overlap of its prepared triangles (T, 3, 3) and box (centre, half
+    sizes h >= 0) by ``_tri_box_kernel``, written into ``out`` (T,)."""
     _tri_box_kernel(np.ascontiguousarray(tris), centre, h, out)
     return out
 
 
-def _clip_to_box(tris: np.ndarray, lo, hi):
-    """planner._clip_to_box by ``_clip_to_box_kernel``: polygons (T, 9, 3), the unused rows
-    zero."""
-    poly = np.asarray(tris, np.float64).reshape(-1, 3, 3)
+def _clip_to_box(poly: np.ndarray, lo, hi):
+    """planner._clip_to_box of its float64 triangles (T, 3, 3) by ``_clip_to_box_kernel``:
+    polygons (T, 9, 3), the unused rows zero."""
     out, count = np.zeros((poly.shape[0], 9, 3)), np.zeros(poly.shape[0], np.int64)
     _clip_to_box_kernel(poly, np.asarray(lo, np.float64), np.asarray(hi, np.float64),
                         out, count)
     return out, count
 
 
-def _cone_hits(poly: np.ndarray, count: np.ndarray, apex, axis, half: float) -> np.ndarray:
-    """planner._cone_hits for half < 90 deg (the planner tests wider cones by their vertices)
-    by ``_cone_hits_kernel``: the same per polygon, with no small-array numpy calls."""
-    apex = np.asarray(apex, np.float64)
-    axis = np.asarray(axis, np.float64)
-    if poly.shape[0] == 0:
-        return np.zeros(0, bool)
-    valid = np.arange(poly.shape[1])[None, :] < count[:, None]
-    rel = poly - apex
-    # the numpy code's front plane, from the whole batch's scale
-    scale = max(float(np.max(np.abs(rel[valid]))) if valid.any() else 1.0, 1e-30)
-    offset = -float(axis @ apex) - scale * 2.0 ** -40
-    helper = np.array([1.0, 0.0, 0.0]) if abs(axis[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    u = cross3(axis, helper)
-    u /= np.linalg.norm(u)
-    w = cross3(axis, u)
+def _cone_hits(poly: np.ndarray, count: np.ndarray, apex: np.ndarray, axis: np.ndarray,
+               half: float, offset: float, u: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """planner._cone_hits for half < 90 deg by ``_cone_hits_kernel``, from the planner's front
+    plane ``offset`` and projection axes (u, w): the same per polygon, with no small-array
+    numpy calls."""
     out = np.zeros(poly.shape[0], bool)
     _cone_hits_kernel(np.ascontiguousarray(poly, np.float64), count.astype(np.int64),
                       apex, axis, float(half), offset, u, w, float(np.tan(half) ** 2), out)
