@@ -1,17 +1,8 @@
 """The team's test scenes, built with bpy data calls (no operators in loops), on the helpers
-of the shipped demo (lpv_addon/scene_io/demo.py: the Cornell box and its conventions).
-
-Every builder by default starts a fresh file with ``bpy.ops.wm.read_homefile(use_empty=True)``
-(add-ons stay registered) and builds into its one scene, which is then the context scene;
-with ``new_file=False`` it adds a new scene to the current file instead (made the window's
-scene when there is a window; headless, pass it to the renderer explicitly).
-
-Conventions: metres, Z up; purely diffuse Lambertian materials (Diffuse BSDF with roughness 0
-by default, or Principled BSDF with Specular IOR Level 0 / roughness 1: Cycles puts all the
-light of either into the Diffuse passes, measured Combined == (DiffDir + DiffInd) x DiffCol);
-a black world (light comes from the lamps only); lights with shadow_soft_size 0 and sun
-angle 0 (hard shadows), invisible to camera rays; a camera with sensor_fit HORIZONTAL; render
-engine Cycles at the given resolution, 100 %. Wall quads face into rooms, boxes face out.
+of the shipped demo (lpv_addon/scene_io/demo.py), with its conventions: a fresh file per build
+unless ``new_file=False``, metres and Z up, purely diffuse materials, a black world, hard
+lights invisible to the camera, wall quads facing into rooms (that module's docstring says
+why each holds).
 """
 
 from __future__ import annotations
