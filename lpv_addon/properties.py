@@ -18,17 +18,18 @@ from bpy.props import (
 )
 
 from ._core import core
+from .presets import SETTINGS as PRESET_SETTINGS
 from .viewport import live
 
 # Quality presets: name -> (label, description, settings).
 PRESETS = {
-    "DRAFT": ("Draft", "12^3 grid, 128^2 RSM: fastest (Cornell box indirect error 0.17)", {
-        "grid_resolution": 12, "rsm_resolution": 128, "cascades": 3}),
-    "PREVIEW": ("Preview", "16^3 grid, 256^2 RSM: the default (Cornell box indirect error 0.19)", {
-        "grid_resolution": 16, "rsm_resolution": 256, "cascades": 3}),
+    "DRAFT": ("Draft", "12^3 grid, 128^2 RSM: fastest (Cornell box indirect error 0.17)",
+        PRESET_SETTINGS["DRAFT"]),
+    "PREVIEW": ("Preview", "16^3 grid, 256^2 RSM: the default (Cornell box indirect error 0.19)",
+        PRESET_SETTINGS["PREVIEW"]),
     "HIGH": ("High", ("24^3 grid, 512^2 RSM: 3-5x Preview's time; finer cells, less error "
-                      "(point-lit room 0.11, sunlit room 0.34)"), {
-        "grid_resolution": 24, "rsm_resolution": 512, "cascades": 3}),
+                      "(point-lit room 0.11, sunlit room 0.34)"),
+        PRESET_SETTINGS["HIGH"]),
 }
 _APPLYING_PRESET = [False]
 # Defaults follow the core's GISettings, so the add-on and scripts start from the same place.
@@ -149,8 +150,9 @@ class LPVSceneSettings(bpy.types.PropertyGroup):
     )
     # Batch and comparison
     batch_directory: StringProperty(
-        name="Output", subtype="DIR_PATH", default="//lpv_frames/", options=PATH_OPTIONS,
-        description="Folder for batch-rendered EXR frames and stats.json",
+        name="Output", subtype="DIR_PATH", default="", options=PATH_OPTIONS,
+        description="Folder for batch-rendered EXR frames and stats.json (empty: the scene's "
+                    "render output path)",
     )
     compare_resolution: IntProperty(
         name="Compare Resolution", default=64, min=8, max=1024,
