@@ -279,12 +279,13 @@ class _GeometryCollector:
         return out
 
     def arrays(self):
-        """World-space (positions, normals, material, object index): each instance is
-        transformed straight into its slice of the output (no per-chunk copies)."""
+        """World-space (positions float64, normals, material, object index): each instance
+        is transformed straight into its slice of the output (no per-chunk copies). Positions
+        stay float64 until the core subtracts its own origin: float32 spacing is 1 m at 1e7 m."""
         with self.timer.phase("transform"):
             sizes = [len(c[3]) for c in self.chunks]
             total = sum(sizes)
-            pos = np.empty((total, 3, 3), np.float32)
+            pos = np.empty((total, 3, 3), np.float64)
             nrm = np.empty((total, 3, 3), np.float32)
             start = 0
             for (p, n, matrix, _, _), size in zip(self.chunks, sizes):
@@ -413,8 +414,9 @@ def _degenerate(matrix: np.ndarray) -> bool:
 
 
 def _to_world(pos, nrm, matrix: np.ndarray, out_pos: np.ndarray, out_nrm: np.ndarray) -> None:
-    """Write world-space triangles into ``out_*``: normals by the inverse transpose, winding
-    kept consistent with them for mirrored objects (NaN transforms give NaN: dropped later)."""
+    """Write world-space triangles into ``out_*``: positions in float64 (the matrix Blender
+    holds, applied without rounding), normals by the inverse transpose, winding kept consistent
+    with them for mirrored objects (NaN transforms give NaN: dropped later)."""
     m3 = matrix[:3, :3]
     if not np.isfinite(matrix).all():
         out_pos.fill(np.nan)
@@ -425,8 +427,8 @@ def _to_world(pos, nrm, matrix: np.ndarray, out_pos: np.ndarray, out_nrm: np.nda
         out_nrm[:] = nrm
         return
     # One (3T, 3) x (3, 3) product: several times faster than a batched (T, 3, 3) matmul.
-    np.matmul(pos.reshape(-1, 3), m3.T.astype(np.float32), out=out_pos.reshape(-1, 3))
-    out_pos += matrix[:3, 3].astype(np.float32)
+    np.matmul(pos.reshape(-1, 3).astype(np.float64), m3.T, out=out_pos.reshape(-1, 3))
+    out_pos += matrix[:3, 3]
     # n' = inv(M)^T n; as row vectors: n @ inv(M). make_scene renormalises.
     np.matmul(nrm.reshape(-1, 3), np.linalg.inv(m3).astype(np.float32),
               out=out_nrm.reshape(-1, 3))
