@@ -54,6 +54,7 @@ def _blender_room(offset) -> "object":
     (1e7 + 1 is; 1e7 + 0.5 is not, float32 spacing there is 1 m). Its world positions are
     then exact in float64 and the two rooms differ by the offset alone."""
     import bpy
+
     from lpv_addon.scene_io import demo as blender_demo
     from lpv_addon.scene_io import extract
 
