@@ -54,7 +54,7 @@ def _unfold_kernel(cells, rows, dest, dirs, out, base):  # pragma: no cover - co
             continue
         held = c0 * sqrt_4pi
         vx, vy, vz = -cells[row, 3] * to_flux, -cells[row, 1] * to_flux, cells[row, 2] * to_flux
-        norm = np.sqrt(vx * vx + vy * vy + vz * vz)
+        norm = _norm_kernel(vx, vy, vz)
         r = min(max(norm / held, zero), max_cos)
         if norm > zero:
             vx, vy, vz = vx / norm, vy / norm, vz / norm
@@ -66,6 +66,14 @@ def _unfold_kernel(cells, rows, dest, dirs, out, base):  # pragma: no cover - co
         scale = held / total
         for j in range(q):
             out[base[j] + col] = w[j] * scale
+
+
+@jit.kernel
+def _norm_kernel(vx, vy, vz):  # pragma: no cover - compiled
+    """|v| of a float32 vector as emission.moments forms it: squared and summed in float64
+    (no overflow or underflow at any flux), rounded to float32."""
+    x, y, z = np.float64(vx), np.float64(vy), np.float64(vz)
+    return np.float32(np.sqrt((x * x + y * y) + z * z))
 
 
 @jit.kernel
@@ -250,7 +258,7 @@ def _directions_kernel(cells, lit, out):  # pragma: no cover - compiled
         s2 = (cells[row, 2] + cells[row + 1, 2]) + cells[row + 2, 2]
         s3 = (cells[row, 3] + cells[row + 1, 3]) + cells[row + 2, 3]
         vx, vy, vz = -s3 * to_flux, -s1 * to_flux, s2 * to_flux
-        norm = np.sqrt((vx * vx + vy * vy) + vz * vz)
+        norm = _norm_kernel(vx, vy, vz)
         if norm > zero:
             out[e, 0], out[e, 1], out[e, 2] = vx / norm, vy / norm, vz / norm
         else:
@@ -276,7 +284,7 @@ def _emission_band2_kernel(c, out):  # pragma: no cover - compiled
             continue
         held = c[i, 0] * sqrt_4pi
         vx, vy, vz = -c[i, 3] * to_flux, -c[i, 1] * to_flux, c[i, 2] * to_flux
-        norm = np.sqrt(vx * vx + vy * vy + vz * vz)
+        norm = _norm_kernel(vx, vy, vz)
         r = min(max(norm / held, zero), max_cos)
         if not r > np.float32(0.5) or not norm > zero:
             continue  # E[P2] = 0: no band 2

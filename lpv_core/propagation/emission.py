@@ -23,12 +23,14 @@ FLUX_FROM_BAND1 = sh.Y1 * 4.0 * np.pi / 3.0
 
 
 def moments(coeffs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(..., 4) SH -> flux Phi (...), mean cosine r in [0, MAX] (...), unit direction (..., 3)."""
+    """(..., 4) SH -> flux Phi (...), mean cosine r in [0, MAX] (...), unit direction (..., 3).
+    Scale-free: the same r and direction for any flux float32 holds (1e-30 W to 1e30 W)."""
     c = np.asarray(coeffs)
     held = np.maximum(c[..., 0], 0.0) * np.float32(sh.SQRT_4PI)
     # Coefficient order (Y00, Y1-1 ~ -y, Y10 ~ z, Y11 ~ -x).
     vec = np.stack([-c[..., 3], -c[..., 1], c[..., 2]], axis=-1) * np.float32(FLUX_FROM_BAND1)
-    norm = np.sqrt((vec * vec).sum(axis=-1))
+    wide = vec.astype(np.float64)  # squared in float64: no overflow or underflow at any flux
+    norm = np.sqrt((wide * wide).sum(axis=-1)).astype(vec.dtype)
     with np.errstate(divide="ignore", invalid="ignore"):
         r = np.where(held > 0, norm / held, 0.0)
         d = np.where(norm[..., None] > 0, vec / norm[..., None], 0.0)
