@@ -61,7 +61,8 @@ class LightGrids:
     key: tuple  # light_key of the light they were made for
     grids: list  # propagated grid per cascade, finest first (unweighted)
     sample: tuple  # (positions (N, 3), flux (N, 3)): a VPL subsample for debug views
-    flux: np.ndarray | None  # the RSM's VPL flux (same_vpls after a material change)
+    flux: np.ndarray | str | None  # the RSM's VPL flux or its digest (same_vpls)
+    resolution: int = 0  # the RSM's resolution (Engine._rsm_plan)
 
 
 @dataclass
@@ -132,7 +133,13 @@ class Engine:
         self._last_chain = None  # the cascades of the last update (placement hysteresis)
         self._cache_base = self._cache_chain = None  # the cache's key without inner cascades
         self._refl_key = None  # reflectance digest the cached grids were made with
-        self._shadows: dict = {}  # direct-light shadow maps of the current geometry
+        self._around = None  # (geometry key, cascades.Surroundings of the camera's eye)
+        self._enclosure = None  # (Surroundings, cascades.enclosure_bounds of it)
+        from .render.shadows import ShadowCache
+
+        self._shadows = ShadowCache()  # direct-light shadow maps of the current geometry
+        self._shadow_memo = None  # (inputs, plan) of _shadow_plan
+        self._rsm_memo = None  # (inputs, plan) of _rsm_plan
 
     @property
     def raster(self):
@@ -195,49 +202,121 @@ class Engine:
         far outlier does not cost the scene float32 precision); returns that box (lo, hi).
         ``geo``: the scene's geometry_key when the caller has it (saves hashing again)."""
         lo, hi = self.lpv_bounds(scene, stats, geo)
-        with Timer(stats, "upload"):
+        self._send(scene, stats, 0.5 * (lo + hi))
+        return lo, hi
+
+    def _send(self, scene: Scene, stats: Stats | None, origin) -> None:
+        with Timer(stats or Stats(), "upload"):
             self.raster.upload(scene.positions, scene.normals, scene.albedo_per_triangle(),
                                scene.reflectance_per_triangle(),
                                receiver=None if scene.receiver is None else scene.flag("receiver"),
-                               origin=0.5 * (lo + hi))
-        return lo, hi
+                               origin=origin)
 
     def lpv_bounds(self, scene: Scene, stats: Stats | None = None, geo: str | None = None):
-        """The box the LPV covers (cascades.fit_bounds: far outliers left out, listed in the
-        stats), cached per geometry."""
+        """The box the LPV covers (cascades.fit_bounds: far outliers left out; or the closed
+        space around the camera where that is much smaller, cascades.enclosure_bounds), what
+        it leaves out listed in the stats; cached per geometry and camera surroundings."""
         geo = geo or geometry_key(scene)
         if self._bounds is None or self._bounds.geometry != geo:
             self._bounds = Bounds(geo, *cascades.fit_bounds(scene))
         b = self._bounds
         lo, hi, outside, share = b.lo, b.hi, b.outside, b.outside_share
+        around = self.surroundings(scene, geo, stats)
+        if self._enclosure is None or self._enclosure[0] is not around:
+            self._enclosure = (around, cascades.enclosure_bounds(scene, lo, hi, around))
+        enclosed = self._enclosure[1]
+        if enclosed is not None:
+            lo, hi, outside, share = enclosed
         if stats is not None:
             stats.info["lpv_bounds"] = {"lo": lo.tolist(), "hi": hi.tolist(),
                                         "outside_triangles": outside,
-                                        "outside_area_share": share}
+                                        "outside_area_share": share,
+                                        "enclosed": enclosed is not None}
             if outside and not any(s["stage"] == "lpv" and s["what"].endswith("surface area)")
                                    for s in stats.skipped):
-                stats.skip("lpv", f"{outside} triangles ({share:.2%} of the surface area)",
-                           "far outliers: outside the LPV, they get no GI")
+                why = ("outside the closed space the camera is in (no light passes its walls): "
+                       "outside the LPV, they get no GI" if enclosed is not None
+                       else "far outliers: outside the LPV, they get no GI")
+                stats.skip("lpv", f"{outside} triangles ({share:.2%} of the surface area)", why)
         return lo, hi
+
+    def surroundings(self, scene: Scene, geo: str, stats: Stats | None = None):
+        """cascades.Surroundings of the camera's eye (a SURROUND_PIXELS^2 cube map), None
+        without a perspective camera; rendered again when the geometry changes or the eye
+        moves more than a cell of the fitted box's grid from where it was rendered."""
+        cam = scene.camera
+        proj = None if cam is None else np.asarray(cam.projection, np.float64)
+        if proj is None or abs(proj[3, 3]) > 0.5:  # none, or orthographic: no eye point
+            return None
+        eye, b = cam.position, self._bounds
+        cell = float(np.max(b.hi - b.lo)) / max(scene.settings.grid_resolution - 2, 1)
+        if (self._around is not None and self._around[0] == geo
+                and np.max(np.abs(self._around[1].origin - eye)) <= cell):
+            return self._around[1]
+        self._send(scene, stats, 0.5 * (b.lo + b.hi))
+        near = float(proj[2, 3] / (proj[2, 2] - 1.0))  # the camera's clip start
+        far = float(np.linalg.norm(np.maximum(np.abs(b.lo - eye), np.abs(b.hi - eye)))) * 1.01
+        with Timer(stats or Stats(), "planner"):
+            points, solid, missed, tol = self.raster.surroundings(eye, near, max(far, 2 * near),
+                                                                  SURROUND_PIXELS)
+        around = cascades.Surroundings(eye, points, solid, missed / (4.0 * np.pi), tol)
+        self._around = (geo, around)
+        return around
 
     def shadow_map(self, scene: Scene, light, bounds, resolution: int,
                    stats: Stats | None = None):
-        """direct.render_shadow_map, cached per geometry, light and resolution: frames of an
-        animation whose geometry and lights hold still (a camera move) reuse them."""
+        """direct.render_shadow_map at the light's share of the shadow budget
+        (shadows.resolutions: ``resolution`` for every light while all fit), cached per
+        geometry, light and resolution, least recently used out past the budget: frames of
+        an animation whose geometry and lights hold still (a camera move) reuse them."""
         from .render import direct
 
         geo = self._bounds.geometry if self._bounds is not None else geometry_key(scene)
-        key = (geo, light_key(light), int(resolution),
-               np.asarray(bounds, np.float64).tobytes())
-        if self._shadows.get("geo") != geo:
-            self._shadows = {"geo": geo}
+        lkey = light_key(light)
+        res = self._shadow_plan(scene, bounds, int(resolution), geo).get(lkey, int(resolution))
+        key = (lkey, res, np.asarray(bounds, np.float64).tobytes())
+        if self._shadows.tag != geo:
+            self._shadows.clear(geo)
         shadow = self._shadows.get(key)
         if shadow is None:
-            shadow = self._shadows[key] = direct.render_shadow_map(self.raster, light, bounds,
-                                                                   resolution)
+            shadow = direct.render_shadow_map(self.raster, light, bounds, res)
+            self._shadows.put(key, shadow)
         elif stats is not None:
             stats.skip("direct", f"shadow map of '{light.name}'", "unchanged: reused")
+        if stats is not None:
+            info = stats.info.setdefault("shadow_maps", {})
+            info.update(budget_mib=self._shadows.budget / 2**20, evicted=self._shadows.evicted,
+                        cached_mib=round(self._shadows.bytes / 2**20, 3),
+                        cached=len(self._shadows.maps))
+            if res < resolution:
+                if not info.get("reduced"):
+                    stats.skip("direct", f"{resolution}^2 shadow maps of some lights",
+                               f"past the shadow budget ({self._shadows.budget / 2**20:.0f} "
+                               "MiB): sized by their share of the light (info shadow_maps)")
+                info.setdefault("reduced", {})[light.name] = res
         return shadow
+
+    def _shadow_plan(self, scene: Scene, bounds, resolution: int, geo: str) -> dict:
+        """light_key -> shadow resolution of every light (shadows.resolutions by its share of
+        the irradiance on what the camera sees), memoised for the scene's lights and view."""
+        from .render import shadows
+
+        lights = scene.lights
+        cam = scene.camera
+        memo = (geo, resolution, np.asarray(bounds, np.float64).tobytes(),
+                None if cam is None else np.r_[cam.view, cam.projection].tobytes(),
+                _lights_digest(lights))
+        if self._shadow_memo is not None and self._shadow_memo[0] == memo:
+            return self._shadow_memo[1]
+        views = [shadows.view_count(li) if li.power > 0 else 0 for li in lights]
+        plan: dict = {}
+        if resolution ** 2 * sum(views) * 4 > self._shadows.budget:  # else all at full size
+            points = None if cam is None else self._focus(scene, Stats(), geo)[0]
+            res = shadows.resolutions(shadows.frame_shares(lights, points), views, resolution,
+                                      self._shadows.budget / 4)
+            plan = {light_key(li): int(r) for li, r in zip(lights, res)}
+        self._shadow_memo = (memo, plan)
+        return plan
 
     def update(self, scene: Scene, stats: Stats | None = None,
                reproject: bool = False) -> LPVResult:
@@ -318,12 +397,15 @@ class Engine:
         if settings.cascades > 1 and scene.camera is not None:
             focus, sky = self._focus(scene, stats, geo)
             if settings.cascades_auto:
+                around = self._around[1] if self._around is not None else None
+                space = None if around is None else around.size()
                 memo = (self._focus_cache.key, settings.cascades, lo.tobytes(), hi.tobytes(),
-                        self._cascade_count)
+                        self._cascade_count, space)
                 if self._count_memo is None or self._count_memo[0] != memo:
                     eye = np.linalg.inv(np.asarray(scene.camera.view, np.float64))[:3, 3]
                     self._count_memo = (memo, planner.cascade_count(
-                        settings.cascades, lo, hi, eye, focus, sky, self._cascade_count))
+                        settings.cascades, lo, hi, eye, focus, sky, self._cascade_count,
+                        space))
                 count, why = self._count_memo[1]
                 self._cascade_count = count
                 stats.info["cascade_count"] = {"count": count, "why": why}
@@ -349,7 +431,15 @@ class Engine:
         """(grids per cascade, VPL sample, VPLs injected) of one light: cached when nothing it
         depends on changed; after a material change, cached if its re-rendered RSM is the
         same; zeros without an RSM if the planner finds it reaches no caster."""
-        cached = self._cached(light, stats, report=not refl_changed)
+        res = self._rsm_plan(scene).get(light_key(light), scene.settings.rsm_resolution)
+        if res < scene.settings.rsm_resolution:
+            reduced = stats.info.setdefault("rsm_reduced", {})
+            if not reduced:
+                stats.skip("rsm", f"{scene.settings.rsm_resolution}^2 RSMs of some lights",
+                           "past the RSM budget: sized by their share of the GI flux "
+                           "(info rsm_reduced)")
+            reduced[light.name] = res
+        cached = self._cached(light, stats, report=not refl_changed, resolution=res)
         if cached is not None and not refl_changed:
             return cached[0], cached[1], 0
         with Timer(stats, "planner"):
@@ -359,14 +449,14 @@ class Engine:
         if not reach[-1].keep:  # reaches no caster at all: no RSM either
             totals = [g.zeros(propagation.coefficients(scene.settings.angular)) for g in chain]
             sample = (np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32))
-            self._lights[light.name] = LightGrids(light_key(light), totals, sample, None)
+            self._lights[light.name] = LightGrids(light_key(light), totals, sample, None, res)
             return totals, sample, 0
         planner.record(reach[:-1], stats, "injection")
         if light.type == "SUN" and len(chain) > 1:
             rsm, sample = self._sun_rsm(light, chain, [d.keep for d in reach], bounds,
                                         scene.settings, stats)
         else:
-            rsm, sample = self._rsm(light, bounds, scene.settings, stats)
+            rsm, sample = self._rsm(light, bounds, res, stats)
         entry = self._lights.get(light.name)
         if cached is not None and entry is not None and same_vpls(entry.flux, rsm.flux):
             stats.skip("injection", f"light '{light.name}'",
@@ -375,7 +465,12 @@ class Engine:
         totals = run.propagate(rsm.position, rsm.normal, rsm.flux, [d.keep for d in reach])
         if scene.settings.bounces > 1:
             totals = self._more_bounces(scene, run, totals)
-        self._lights[light.name] = LightGrids(light_key(light), totals, sample, rsm.flux)
+        # the flux itself while the kept arrays fit in FLUX_KEPT (comparing it is cheaper than
+        # hashing it), else its digest: 300 point lights' fluxes would hold 2.8 GB
+        kept = sum(e.flux.nbytes for n, e in self._lights.items()
+                   if n != light.name and isinstance(e.flux, np.ndarray))
+        flux = rsm.flux if kept + rsm.flux.nbytes <= FLUX_KEPT else _digest(rsm.flux)
+        self._lights[light.name] = LightGrids(light_key(light), totals, sample, flux, res)
         return totals, sample, rsm.count
 
     @staticmethod
@@ -471,13 +566,34 @@ class Engine:
         keep = planner.record(decisions, stats, "cascades")
         return [g for g, k in zip(chain, keep) if k]
 
-    def _rsm(self, light, bounds, settings, stats: Stats):
+    def _rsm(self, light, bounds, resolution: int, stats: Stats):
         """The light's RSM and a subsample of its VPLs (positions, flux) for debug views."""
         from .rsm import render_rsm
 
         with Timer(stats, "rsm"):
-            rsm = render_rsm(self.raster, light, bounds, settings.rsm_resolution)
+            rsm = render_rsm(self.raster, light, bounds, resolution)
         return rsm, _vpl_sample(rsm)
+
+    def _rsm_plan(self, scene: Scene) -> dict:
+        """light_key -> RSM resolution of the GI lights other than suns (shadows.resolutions
+        within RSM_BUDGET texels by their share of the GI flux, shadows.gi_weight; empty while
+        all fit at settings.rsm_resolution), memoised for the scene's lights."""
+        from .render import shadows
+
+        settings = scene.settings
+        lights = [li for li in scene.lights if li.type != "SUN"
+                  and not _no_gi_reason(li, settings.intensity)]
+        memo = (settings.rsm_resolution, _lights_digest(lights))
+        if self._rsm_memo is None or self._rsm_memo[0] != memo:
+            views = [shadows.view_count(li) for li in lights]
+            plan: dict = {}
+            if settings.rsm_resolution ** 2 * sum(views) > shadows.RSM_BUDGET:
+                w = np.array([shadows.gi_weight(li) for li in lights])
+                res = shadows.resolutions(w / w.sum(), views, settings.rsm_resolution,
+                                          shadows.RSM_BUDGET)
+                plan = {light_key(li): int(r) for li, r in zip(lights, res)}
+            self._rsm_memo = (memo, plan)
+        return self._rsm_memo[1]
 
     def _sun_rsm(self, light, chain: list, reach: list, bounds, settings, stats: Stats):
         """A sun's VPLs with one RSM fitted to each cascade [KD10 sec. 4.1]: each cascade
@@ -506,7 +622,8 @@ class Engine:
     def clear_cache(self) -> None:
         """Forget cached grids and shadow maps: the next update recomputes everything."""
         self._cache_key, self._lights, self._volumes = None, {}, {}
-        self._shadows = {}
+        self._shadows.clear()
+        self._shadow_memo = self._rsm_memo = None
         self._cache_base = self._cache_chain = None
 
     def _visibility(self, scene: Scene, grid: Grid, stats: Stats | None):
@@ -523,11 +640,12 @@ class Engine:
         entry = self._volumes.get((grid.origin, grid.cell_size))
         return None if entry is None else entry.gaps
 
-    def _cached(self, light, stats: Stats, report: bool = True):
+    def _cached(self, light, stats: Stats, report: bool = True, resolution: int | None = None):
         """(grids per cascade, VPL sample) of ``light`` if nothing it depends on changed
-        (materials aside: see update)."""
+        (materials aside: see update), its RSM ``resolution`` included when given."""
         entry = self._lights.get(light.name)
-        if entry is None or entry.key != light_key(light):
+        if entry is None or entry.key != light_key(light) or (
+                resolution is not None and entry.resolution != resolution):
             return None
         if report:
             stats.skip("rsm", f"light '{light.name}'",
@@ -661,6 +779,8 @@ def same_vpls(flux, other) -> bool:
     equal VPL flux arrays. The cache keeps the last RSM's flux array itself (it is made anew
     each update, never written after) instead of a digest: hashing it cost 1-2 ms of every
     update, the comparison is needed only after a material edit."""
+    if isinstance(flux, str):  # a digest (FLUX_KEPT)
+        return flux == _digest(other)
     return flux is not None and flux.shape == other.shape and bool(np.array_equal(flux, other))
 
 
@@ -697,6 +817,15 @@ def light_key(light) -> tuple:
             bool(light.cast_shadow))
 
 
+def _lights_digest(lights) -> str:
+    """Digest of every light parameter light_key reads (shadow and RSM plans), in order."""
+    rows = [np.r_[np.asarray(li.matrix, np.float64).ravel(), np.asarray(li.color, np.float64),
+                  li.power, li.spot_size, li.spot_blend, li.size, li.cast_shadow,
+                  li.gi_intensity, np.asarray(getattr(li, "gi_color", np.ones(3)), np.float64)]
+            for li in lights]
+    return _digest(repr([li.type for li in lights]), np.array(rows, np.float64))
+
+
 def _inject(backend, grid: Grid, positions, normals, flux, visibility, sel=slice(None)):
     """The backend's injection (occlusion-aware splat when there are occluders) of the VPL
     rows ``sel`` (a slice, or an index array the numpy backend reads in place: three
@@ -711,7 +840,9 @@ def _inject(backend, grid: Grid, positions, normals, flux, visibility, sel=slice
 
 
 FOCUS_PIXELS = 64  # longest side of the G-buffer that finds what the camera sees
+SURROUND_PIXELS = 32  # cube map side of what the camera's eye sees all around (surroundings)
 VPL_SAMPLE = 4096  # VPLs per light kept in LPVResult.vpls for debug views
+FLUX_KEPT = 256 * 2**20  # bytes of RSM flux arrays kept for same_vpls (else digests)
 
 
 class NumpyBackend:

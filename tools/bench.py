@@ -1,7 +1,7 @@
 """Benchmark: per-stage medians of the LPV update and render on the built-in Cornell box.
 
     python -m tools.bench [--quick] [--json] [--repeat N] [--resolution WxH]
-                             [--sweep | --sweep-quick] [--sweep-only]
+                             [--sweep | --sweep-quick] [--sweep-only] [--lights N]
 
 Prints one JSON object (--json) or a table. Times are medians over the repeats, measured in one
 run on this machine; compare ratios, not absolute numbers, across machines.
@@ -16,7 +16,8 @@ convergence, 16^3 cascades picked per view); ``angular`` in the output names the
 roofline of the dense propagation step of each transport model (dom, sh) and the 1280x720
 lookup) under the key "sweep";
 ``--sweep-quick`` a tiny version of it (for tests); ``--sweep-only`` skips the Cornell box
-figures. See docs/benchmarks.md.
+figures. ``--lights N`` times only one frame of the box lit by N point lights, per light,
+with its peak memory (the shadow and RSM budgets, render/shadows.py). See docs/benchmarks.md.
 """
 
 from __future__ import annotations
@@ -167,6 +168,50 @@ def incremental(repeat: int, settings: GISettings) -> dict:
     }
 
 
+def many_lights_scene(n: int, resolution: tuple[int, int], settings: GISettings | None = None):
+    """The Cornell box lit by ``n`` point lights (300 W in all) at fixed pseudo-random places
+    in the layer above the tall block (z 1.3-1.9 m)."""
+    from lpv_core.scene.model import Light
+
+    scene = demo.cornell_box("NONE", resolution, settings or GISettings())
+    rng = np.random.default_rng(19)
+    for k, p in enumerate(rng.uniform([-0.9, -0.9, 1.3], [0.9, 0.9, 1.9], (n, 3))):
+        scene.lights.append(Light(f"Point{k}", "POINT", demo.light_matrix(p, (0, 0, -1)),
+                                  power=300.0 / n))
+    return scene
+
+
+def many_lights(n: int, resolution: tuple[int, int]) -> dict:
+    """One frame (update + render, default settings) of many_lights_scene: its stages, their
+    time per light, the shadow and RSM budgets' resolutions, and this process's peak memory
+    (ru_maxrss: run it alone, ``--lights N``)."""
+    import resource
+
+    scene = many_lights_scene(n, resolution)
+    eng = engine.Engine()
+    stats = engine.Stats()
+    t0 = time.perf_counter()
+    result = eng.update(scene, stats)
+    t1 = time.perf_counter()
+    deferred.render(eng, scene, result, stats)
+    t2 = time.perf_counter()
+    shadow = stats.info.get("shadow_maps", {})
+    reduced = shadow.get("reduced", {})
+    rsm = stats.info.get("rsm_reduced", {})
+    s = GISettings()
+    return {
+        "lights": n, "resolution": list(resolution),
+        "frame_s": t2 - t0, "update_s": t1 - t0, "render_s": t2 - t1,
+        "frame_per_light_ms": (t2 - t0) * 1000.0 / n,
+        "per_light_ms": {k: v / n for k, v in stats.ms.items()},
+        "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+        "shadow_cached_mib": shadow.get("cached_mib"), "shadow_budget_mib": shadow.get(
+            "budget_mib"), "shadow_evicted": shadow.get("evicted"),
+        "shadow_resolutions": sorted(set(reduced.values())) or [s.shadow_resolution],
+        "rsm_resolutions": sorted(set(rsm.values())) or [s.rsm_resolution],
+    }
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m tools.bench", description=__doc__.split("\n")[0])
     p.add_argument("--quick", action="store_true", help="3 repeats at 128x128")
@@ -180,6 +225,9 @@ def main(argv: list[str] | None = None) -> int:
                        help="add a tiny scaling sweep (seconds; for tests)")
     p.add_argument("--sweep-only", action="store_true",
                    help="with --sweep/--sweep-quick: only the sweep, no Cornell box figures")
+    p.add_argument("--lights", type=int, default=None, metavar="N",
+                   help="only one frame of the Cornell box lit by N point lights (default "
+                        "256x256): time per light and peak memory")
     args = p.parse_args(argv)
     if args.sweep_only and not (args.sweep or args.sweep_quick):
         p.error("--sweep-only needs --sweep or --sweep-quick")
@@ -188,6 +236,20 @@ def main(argv: list[str] | None = None) -> int:
     if args.resolution:
         w, h = args.resolution.lower().split("x")
         res = (int(w), int(h))
+    if args.lights is not None:
+        if args.lights < 1:
+            p.error(f"--lights must be at least 1, not {args.lights}")
+        out = many_lights(args.lights, res)
+        if args.json:
+            print(json.dumps(out))
+            return 0
+        print(f"{out['lights']} point lights, {res[0]}x{res[1]}, one frame: "
+              f"{out['frame_s']:.1f} s ({out['frame_per_light_ms']:.0f} ms per light), peak "
+              f"memory {out['peak_rss_mib']:.0f} MiB, shadow maps {out['shadow_cached_mib']} "
+              f"MiB cached at {out['shadow_resolutions']}^2, RSMs at {out['rsm_resolutions']}^2")
+        for k, v in sorted(out["per_light_ms"].items(), key=lambda kv: -kv[1]):
+            print(f"  {k:<16} {v:9.2f} ms per light")
+        return 0
     out: dict = {}
     if not args.sweep_only:
         out = run(repeat, res, GISettings())

@@ -24,16 +24,21 @@ class ShadowMap:
 
     light: Light
     views: list
-    depths: list  # (H, W) float32, inf where nothing was hit
+    depths: list  # (H, W) float32, inf where nothing was hit (views of one stacked array)
     resolution: int
     _stacked: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     def stacked(self) -> np.ndarray:
-        """The depths as one (views, H, W) float32 array, made once (the compiled direct
-        light reads it for every sample of every render)."""
+        """The depths as one (views, H, W) float32 array (the compiled direct light reads it
+        for every sample of every render); render_shadow_map writes the faces into it."""
         if self._stacked is None:
             self._stacked = np.stack([np.asarray(d, np.float32) for d in self.depths])
         return self._stacked
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes the map holds (the shadow budget counts them, render/shadows.py)."""
+        return int(self.stacked().nbytes)
 
 
 def render_shadow_map(raster: Rasterizer, light: Light, bounds, resolution: int) -> ShadowMap:
@@ -43,9 +48,10 @@ def render_shadow_map(raster: Rasterizer, light: Light, bounds, resolution: int)
     took 100 ms that way, most of it converting and subtracting 3M floats twice)."""
     from ..scene import lights as lights_mod
 
-    views, depths = [], []
+    views = lights_mod.light_views(light, bounds)
+    stack = np.empty((len(views), resolution, resolution), np.float32)
     origin = np.asarray(raster.origin, np.float64)
-    for view in lights_mod.light_views(light, bounds):
+    for i, view in enumerate(views):
         (target,) = raster.read(view.view, view.projection, resolution, resolution,
                                 ortho=view.ortho, targets=(0,))
         rel = target[..., :3]  # float32, relative to origin
@@ -56,9 +62,8 @@ def render_shadow_map(raster: Rasterizer, light: Light, bounds, resolution: int)
         else:
             diff = rel - (np.asarray(light.position, np.float64) - origin).astype(np.float32)
             depth = np.sqrt(np.einsum("ijk,ijk->ij", diff, diff))
-        depths.append(np.where(target[..., 3] > 0.5, depth, np.float32(np.inf)))
-        views.append(view)
-    return ShadowMap(light, views, depths, resolution)
+        np.copyto(stack[i], np.where(target[..., 3] > 0.5, depth, np.float32(np.inf)))
+    return ShadowMap(light, views, list(stack), resolution, stack)
 
 
 def _transform(m: np.ndarray, p: np.ndarray) -> np.ndarray:
