@@ -1,14 +1,18 @@
 """Headless batch renderer: LPV GI frames as multi-layer EXR with Cycles' pass names.
 
-    python -m lpv_addon.batch SCENE.blend --out DIR [--frames A-B] [--resolution WxH]
+    python -m lpv_addon.batch SCENE.blend [--out DIR] [--frames A-B | --animation]
+                              [--resolution WxH] [--preset draft|preview|high]
                               [--set key=value ...]
     python -m lpv_addon.batch --demo --out DIR
 
-Per frame it writes DIR/NNNN.exr (Combined, Diffuse Direct, Diffuse Indirect, Diffuse Color)
-and rewrites DIR/stats.json; both appear atomically, so a cancelled batch keeps finished frames.
-Progress goes to stderr. Exit 0 on success, 2 with a one-line reason on bad arguments or input.
-The frames go through the Render Batch operator's loop (render/frames.py) with the engine in
-this process: no Blender drawing happens here.
+Like ``blender -b SCENE.blend -f N`` / ``-a`` it renders the scene's current frame, or with
+``--animation`` its frame range and step. Per frame it writes DIR/NNNN.exr (Combined, Diffuse
+Direct, Diffuse Indirect, Diffuse Color; without --out: where the scene's render output path
+puts the frame) atomically and adds the frame to stats.json, so a cancelled batch keeps
+finished frames. Progress goes to stderr. Exit 0 on success, 2 with a one-line reason on bad
+arguments, input or output, 130 when interrupted (Ctrl-C). The frames go through the Render
+Batch operator's loop (render/frames.py) with the engine in this process: no Blender drawing
+happens here.
 """
 
 from __future__ import annotations
@@ -17,7 +21,10 @@ import argparse
 import sys
 from pathlib import Path
 
+from .presets import SETTINGS as PRESETS
+
 USAGE_ERROR = 2
+INTERRUPTED = 130  # 128 + SIGINT, as shells report Ctrl-C
 
 
 class BatchError(Exception):
@@ -75,9 +82,15 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m lpv_addon.batch", description=__doc__.split("\n")[0])
     p.add_argument("blend", nargs="?", help="the .blend file to render")
     p.add_argument("--demo", action="store_true", help="render the built-in Cornell box")
-    p.add_argument("--out", required=True, help="output folder (created if missing)")
-    p.add_argument("--frames", help="frame range A-B (default: the scene's)")
+    p.add_argument("--out", help="output folder, created if missing (default: the scene's "
+                   "render output path)")
+    which = p.add_mutually_exclusive_group()
+    which.add_argument("--frames", help="frame range A-B or frame A (default: the current frame)")
+    which.add_argument("--animation", action="store_true",
+                       help="the scene's frame range and step, as blender -a")
     p.add_argument("--resolution", help="WxH (default: the scene's render resolution)")
+    p.add_argument("--preset", type=str.lower, choices=[k.lower() for k in PRESETS],
+                   help="quality preset, as Scene > LPV > Quality (--set goes on top)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="override a GI setting (repeatable), e.g. grid_resolution=32")
     p.add_argument("--quiet", action="store_true", help="no progress on stderr")
@@ -138,35 +151,44 @@ def run(argv: list[str] | None = None) -> int:
     try:
         frames = parse_frames(args.frames)
         resolution = parse_resolution(args.resolution)
-        overrides = parse_settings(args.set)
-        out = Path(args.out)
-        try:
-            out.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise BatchError(f"--out: cannot create '{out}': {exc.strerror}") from None
-        scene = open_scene(args)
+        overrides = {**PRESETS.get((args.preset or "").upper(), {}), **parse_settings(args.set)}
+        scene = open_scene(args)  # the output folder is made only once the input is good
+        if args.animation:
+            from .render.frames import animation_frames
+
+            frames = animation_frames(scene)
+        frames = frames or (scene.frame_current, scene.frame_current)
     except BatchError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return USAGE_ERROR
-    return render_frames(scene, out, frames, resolution, overrides, args.quiet)
+    except KeyboardInterrupt:
+        print("cancelled after 0 frames", file=sys.stderr)
+        return INTERRUPTED
+    return render_frames(scene, args.out, frames, resolution, overrides, args.quiet)
 
 
-def render_frames(scene, out: Path, frames, resolution, overrides: dict, quiet: bool) -> int:
-    """Render every frame of the range (default: the scene's) in this process; keeps finished
-    frames if interrupted. Returns the exit code (2 with a one-line reason when a frame cannot
-    be extracted or the engine refuses its settings)."""
-    from .render.frames import BatchJob
-
-    def log(msg: str) -> None:
-        if not quiet or msg.startswith("warning:"):
-            print(msg, file=sys.stderr, flush=True)
-
-    job = BatchJob(scene, out, frames, resolution, overrides, in_process=True, log=log)
+def render_frames(scene, out, frames, resolution, overrides: dict, quiet: bool) -> int:
+    """Render ``frames`` (default: the scene's range) into ``out`` (None: the render output
+    path) in this process. Returns the exit code: 2 with a one-line reason when the output
+    cannot be written, a frame cannot be extracted or the engine refuses its settings; 130
+    on Ctrl-C, finished frames kept."""
+    job = None
     try:
+        from .render.frames import BatchJob
+
+        def log(msg: str) -> None:
+            if not quiet or msg.startswith("warning:"):
+                print(msg, file=sys.stderr, flush=True)
+
+        job = BatchJob(scene, out, frames, resolution, overrides, in_process=True, log=log)
         job.run()
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return USAGE_ERROR
+    except KeyboardInterrupt:
+        n = len(job.done) if job is not None else 0
+        print(f"cancelled after {n} frame{'s' * (n != 1)}", file=sys.stderr)
+        return INTERRUPTED
     return 0
 
 

@@ -7,19 +7,18 @@ process never creates a moderngl context.
 
 from __future__ import annotations
 
-import os
 import tempfile
 import time
 from pathlib import Path
 
 import bpy
 import numpy as np
-from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, StringProperty
+from bpy.props import EnumProperty, FloatProperty, IntProperty, StringProperty
 
 from ._core import core
 from .properties import PATH_OPTIONS
 from .render import compare
-from .render.frames import BatchJob
+from .render.frames import BatchJob, animation_frames
 from .viewport import live
 from .worker_client import WorkerError
 
@@ -117,10 +116,12 @@ class LPV_OT_add_area(bpy.types.Operator):
         return {"FINISHED"}
 
 
-def _frame_range(op, scene) -> tuple[int, int]:
-    if op.use_scene_range:
-        return scene.frame_start, scene.frame_end
-    return op.frame_start, op.frame_end
+def _frame_range(op, scene) -> tuple[int, ...]:
+    if op.frames == "ANIMATION":
+        return animation_frames(scene)
+    if op.frames == "RANGE":
+        return op.frame_start, op.frame_end
+    return scene.frame_current, scene.frame_current
 
 
 class LPV_OT_render_batch(bpy.types.Operator):
@@ -133,10 +134,14 @@ class LPV_OT_render_batch(bpy.types.Operator):
 
     directory: StringProperty(name="Output", subtype="DIR_PATH", default="",
                               options=PATH_OPTIONS | {"SKIP_SAVE"},
-                              description="Output folder (empty: Scene > LPV > Output)")
-    use_scene_range: BoolProperty(name="Scene Frame Range", default=True)
-    frame_start: IntProperty(name="Start", default=1)
-    frame_end: IntProperty(name="End", default=1)
+                              description="Output folder (empty: Scene > LPV > Output, else the "
+                                          "render output path)")
+    frames: EnumProperty(name="Frames", default="CURRENT", items=[
+        ("CURRENT", "Current Frame", "Render the scene's current frame, as Render Image"),
+        ("ANIMATION", "Animation", "Render the scene's frame range and step, as Render Animation"),
+        ("RANGE", "Range", "Render the frames from Start to End")])
+    frame_start: IntProperty(name="Start", default=1, description="First frame (Frames: Range)")
+    frame_end: IntProperty(name="End", default=1, description="Last frame (Frames: Range)")
 
     _job = None
     _timer = None
@@ -151,13 +156,9 @@ class LPV_OT_render_batch(bpy.types.Operator):
         return True
 
     def _make_job(self, context):
-        scene = context.scene
-        out = self.directory or scene.lpv.batch_directory
-        if not out:
-            raise ValueError("no output folder (set Scene > LPV > Output)")
-        if out.startswith("//") and not bpy.data.filepath:
-            out = os.path.join(tempfile.gettempdir(), "lpv_frames", out[2:])
-        return BatchJob(scene, out, _frame_range(self, scene))
+        scene = context.scene  # no folder given: the render output path, as F12 renders
+        return BatchJob(scene, self.directory or scene.lpv.batch_directory or None,
+                        _frame_range(self, scene))
 
     def execute(self, context):
         try:

@@ -1,8 +1,14 @@
-"""The batch CLI end to end: exit codes, EXR passes, stats.json shape, atomic outputs."""
+"""The batch CLI end to end: exit codes, EXR passes, stats.json shape, atomic outputs, output
+errors (unwritable, not a folder, disk full), Ctrl-C, stale temporary files, presets, which
+frames a .blend renders and where they go."""
 
 import json
+import os
+import shutil
+import signal
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -11,9 +17,19 @@ from conftest import ROOT
 from lpv_core.render import exr
 
 
-def _cli(*args):
-    return subprocess.run([sys.executable, "-m", "lpv_addon.batch", *args], cwd=ROOT,
-                          capture_output=True, text=True, check=False)
+def _cli(*args, prefix=(), cwd=ROOT):
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    return subprocess.run([*prefix, sys.executable, "-m", "lpv_addon.batch", *args], cwd=cwd,
+                          env=env, capture_output=True, text=True, check=False, timeout=300)
+
+
+SMALL = ("--resolution", "32x24", "--set", "grid_resolution=8", "--set", "rsm_resolution=32")
+
+
+def _error_line(proc) -> str:
+    lines = [ln for ln in proc.stderr.splitlines() if ln.startswith("error")]
+    assert len(lines) == 1 and "Traceback" not in proc.stderr, proc.stderr[-2000:]
+    return lines[0]
 
 
 # ``python -m lpv_addon.batch`` with the measurement tools unimportable, as in the extension
@@ -90,8 +106,8 @@ def test_bad_arguments_exit_2_with_one_line(tmp_path, args, message):
     names = {"OUT": str(tmp_path / "out"), "MISSING": str(tmp_path / "missing.blend")}
     proc = _cli(*[names.get(a, a) for a in args])
     assert proc.returncode == 2
-    lines = [ln for ln in proc.stderr.splitlines() if ln.startswith("error")]
-    assert len(lines) == 1 and message in lines[0], proc.stderr
+    assert message in _error_line(proc)
+    assert not (tmp_path / "out").exists()  # no output folder for a run that cannot start
 
 
 def test_unreadable_file_exits_2(tmp_path):
@@ -100,3 +116,143 @@ def test_unreadable_file_exits_2(tmp_path):
     proc = _cli(str(bad), "--out", str(tmp_path / "o"))
     assert proc.returncode == 2
     assert "not a .blend file" in proc.stderr
+    assert not (tmp_path / "o").exists()
+
+
+def _as_plain_user():
+    """A command prefix under which file permissions apply (root ignores them): a user
+    namespace mapping this user to an unprivileged one."""
+    if os.geteuid() != 0:
+        return ()
+    prefix = ("unshare", "-U", "--map-user=1000", "--map-group=1000")
+    if shutil.which("unshare") is None or subprocess.run([*prefix, "true"],
+                                                         check=False).returncode:
+        pytest.skip("running as root without user namespaces: permissions cannot apply")
+    return prefix
+
+
+@pytest.mark.parametrize("case", ["read-only folder", "parent is a file"])
+def test_unwritable_output_exits_2_naming_the_folder(tmp_path, case):
+    if case == "read-only folder":
+        out = tmp_path / "locked"
+        out.mkdir()
+        out.chmod(0o555)
+        want = f"cannot write to '{out}': Permission denied (EACCES)"
+    else:
+        (tmp_path / "file").write_text("x")
+        out = tmp_path / "file" / "frames"
+        want = f"cannot write to '{out}': Not a directory (ENOTDIR)"
+    proc = _cli("--demo", "--out", str(out), *SMALL,
+                prefix=_as_plain_user() if case == "read-only folder" else ())
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    assert want in _error_line(proc)
+    assert "frame 1 (" not in proc.stderr  # refused before rendering
+
+
+def test_full_disk_exits_2_with_enospc_and_valid_stats(tmp_path):
+    """A real full disk: a 4 KiB tmpfs in a private mount namespace (root or user namespaces
+    needed), which takes the probe and stats.json's head but not the first EXR."""
+    mnt = tmp_path / "tiny"
+    mnt.mkdir()
+    prefix = ("unshare", "-rm") if os.geteuid() else ("unshare", "-m")
+    script = (f'mount -t tmpfs -o size=4k tmpfs "{mnt}" || exit 99; "{sys.executable}" -m '
+              f'lpv_addon.batch --demo --out "{mnt}/out" {" ".join(SMALL)}; rc=$?; '
+              f'echo "STATS=$(cat "{mnt}/out/stats.json" | tr -d "\\n")"; '
+              f'echo "FILES=$(ls -A "{mnt}/out" | tr "\\n" " ")"; exit $rc')
+    if shutil.which("unshare") is None:
+        pytest.skip("no unshare")
+    proc = subprocess.run([*prefix, "sh", "-c", script], cwd=ROOT, capture_output=True,
+                          text=True, check=False, timeout=300)
+    if proc.returncode == 99:
+        pytest.skip(f"cannot mount a tmpfs here: {proc.stderr.strip()[-200:]}")
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    line = _error_line(proc)
+    assert f"cannot write to '{mnt}/out/0001.exr': No space left on device (ENOSPC)" in line
+    out = dict(ln.split("=", 1) for ln in proc.stdout.splitlines() if "=" in ln)
+    stats = json.loads(out["STATS"])
+    assert stats["frames"] == [] and stats["settings"]["grid_resolution"] == 8
+    assert out["FILES"].split() == ["stats.json"]  # no partial EXR, no temporary file
+
+
+def test_ctrl_c_exits_130_and_keeps_finished_frames(tmp_path):
+    out = tmp_path / "out"
+    proc = subprocess.Popen([sys.executable, "-m", "lpv_addon.batch", "--demo", "--out",
+                             str(out), "--frames", "1-400", *SMALL], cwd=ROOT,
+                            stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 240
+    while not (out / "0001.exr").exists() and proc.poll() is None:
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err[-2000:]
+    assert "Traceback" not in err
+    (line,) = [ln for ln in err.splitlines() if ln.startswith("cancelled after")]
+    n = int(line.split()[2])
+    frames = sorted(p.name for p in out.glob("*.exr"))
+    assert 1 <= n < 400 and frames == [f"{i:04d}.exr" for i in range(1, n + 1)]
+    for name in frames:  # every finished frame is complete
+        assert exr.read_multilayer(out / name)["Diffuse Indirect"].shape[:2] == (24, 32)
+    stats = json.loads((out / "stats.json").read_text())
+    assert stats["cancelled"] is True and [f["frame"] for f in stats["frames"]] == list(
+        range(1, n + 1))
+    assert not list(out.glob(".*"))
+
+
+def _dead_pid() -> int:
+    child = subprocess.Popen(["true"])
+    child.wait()
+    return child.pid
+
+
+def test_a_killed_runs_temporary_files_are_removed_by_the_next_run(tmp_path):
+    """The hidden files of an interrupted atomic write (.NAME.PID[.HEX].tmp) go when their
+    process is gone; a live process's and other files stay. Also: --preset, with --set on
+    top."""
+    out = tmp_path / "out"
+    out.mkdir()
+    dead, live = _dead_pid(), os.getpid()
+    stale = [f".0001.exr.{dead}.0123abcd.tmp", f".stats.json.{dead}.tmp"]
+    kept = [f".0002.exr.{live}.0123abcd.tmp", ".notes.tmp", "notes.txt"]
+    for name in stale + kept:
+        (out / name).write_bytes(b"partial")
+    proc = _cli("--demo", "--out", str(out), "--resolution", "32x24", "--preset", "draft",
+                "--set", "rsm_resolution=32")
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert sorted(p.name for p in out.iterdir()) == sorted(["0001.exr", "stats.json", *kept])
+    settings = json.loads((out / "stats.json").read_text())["settings"]
+    assert (settings["grid_resolution"], settings["cascades"]) == (12, 3)  # Draft: 12^3 grid
+    assert settings["rsm_resolution"] == 32
+
+
+
+STILL_SCRIPT = r"""
+import sys
+import bpy
+from lpv_addon.scene_io import demo
+demo.cornell_box("SPOT", resolution=(32, 24))
+scene = bpy.context.scene
+scene.frame_start, scene.frame_end, scene.frame_step = 1, 3, 2
+scene.frame_current = 2
+scene.render.filepath = "//render/shot_"
+bpy.ops.wm.save_as_mainfile(filepath=sys.argv[1])
+"""
+
+
+def test_a_blend_renders_its_current_frame_to_the_render_output_path(tmp_path):
+    """As `blender -b file.blend -f N` / `-a`: the current frame unless --frames or
+    --animation (the scene's range and step) say otherwise; without --out the frames go
+    where the render output path puts them ('//' is the .blend's folder)."""
+    blend = tmp_path / "shot.blend"
+    proc = subprocess.run([sys.executable, "-c", STILL_SCRIPT, str(blend)], cwd=ROOT,
+                          capture_output=True, text=True, check=False, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    proc = _cli(str(blend), *SMALL, cwd=tmp_path.parent)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    render = tmp_path / "render"
+    assert sorted(p.name for p in render.iterdir()) == ["shot_0002.exr", "stats.json"]
+    assert [f["frame"] for f in json.loads((render / "stats.json").read_text())["frames"]] == [2]
+    anim = tmp_path / "anim"
+    proc = _cli(str(blend), "--animation", "--out", str(anim), *SMALL)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert sorted(p.name for p in anim.glob("*.exr")) == ["0001.exr", "0003.exr"]

@@ -2,17 +2,21 @@
 behind ``python -m lpv_addon.batch`` and the Render Batch operator.
 
 Each frame: ``frame_set`` (animated values, e.g. a keyframed ``Scene.lpv.intensity``),
-extraction here, the engine's update and deferred render, the EXR written atomically, and
-stats.json rewritten after every frame, so a cancelled or failed batch keeps its finished
-frames. Where the engine runs is the only difference between the two callers:
+extraction here, the engine's update and deferred render, the EXR written atomically, and its
+record added to stats.json (valid JSON after every frame, constant cost per frame), so a
+cancelled or failed batch keeps its finished frames. Where the engine runs is the only
+difference between the two callers:
 :class:`InProcess` for the CLI (no Blender drawing happens there), :class:`InWorker` inside
 Blender, whose process must never run moderngl (it breaks Blender's drawing).
 """
 
 from __future__ import annotations
 
+import errno
 import json
 import os
+import re
+import tempfile
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -24,11 +28,111 @@ from ..scene_io.extract import extract_scene
 from ..worker_client import WorkerClient, WorkerError
 
 
-def write_json_atomic(path: Path, data: dict) -> None:
-    """``path`` holds either its old content or all of ``data``, never a part."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(data, indent=1))
-    os.replace(tmp, path)
+def os_error_text(exc: OSError, path) -> str:
+    """One line naming the path, the problem and its errno name (ENOSPC: the disk is full)."""
+    code = errno.ENOTDIR if exc.errno == errno.EEXIST else exc.errno  # mkdir over a file
+    if code is None:
+        return f"cannot write to '{path}': {exc}"
+    return f"cannot write to '{path}': {os.strerror(code)} ({errno.errorcode.get(code, code)})"
+
+
+# What StatsFile and the EXR writer leave when killed: .NAME.PID[.HEX8].tmp
+_TMP_NAME = re.compile(r"^\..+\.(?:exr|json)\.(\d+)(?:\.[0-9a-f]{8})?\.tmp$")
+
+
+def _alive(pid: int) -> bool:
+    if os.name == "nt":  # os.kill would terminate it; a live writer's file cannot be removed
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        pass
+    return True
+
+
+def remove_stale_tmp(folder: Path, own: bool = False) -> None:
+    """Remove the hidden temporary files of atomic writes whose process is gone (and this
+    process's own with ``own``): what a killed batch leaves in its output folder."""
+    for tmp in folder.glob(".*.tmp"):
+        m = _TMP_NAME.match(tmp.name)
+        if m and (not _alive(int(m[1])) or (own and int(m[1]) == os.getpid())):
+            try:
+                tmp.unlink(missing_ok=True)
+            except OSError:
+                pass
+
+
+class StatsFile:
+    """stats.json, valid JSON after every frame at a constant cost per frame: the head is
+    written once (atomically); each frame's record, one line, is written where the closing
+    tail stood, followed by the tail again."""
+
+    def __init__(self, path: Path, head: dict):
+        text = json.dumps(head)[:-1] + ', "frames": [\n'
+        tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+        self.tail = self._tail(False)
+        tmp.write_bytes(text.encode() + self.tail)
+        os.replace(tmp, path)
+        self.path, self.fd = path, os.open(path, os.O_RDWR | getattr(os, "O_BINARY", 0))
+        self.end, self.count, self.cancelled = len(text), 0, False
+
+    @staticmethod
+    def _tail(cancelled: bool) -> bytes:
+        return f'\n], "cancelled": {json.dumps(cancelled)}}}\n'.encode()
+
+    def _write_at(self, offset: int, data: bytes) -> None:
+        os.lseek(self.fd, offset, os.SEEK_SET)
+        if os.write(self.fd, data) < len(data):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        os.ftruncate(self.fd, offset + len(data))
+        os.fsync(self.fd)
+
+    def _write(self, text: str) -> None:
+        tail = self._tail(self.cancelled)
+        try:
+            self._write_at(self.end, text.encode() + tail)
+        except OSError as exc:  # e.g. ENOSPC: put the last valid tail back, then report
+            os.ftruncate(self.fd, self.end)
+            self._write_at(self.end, self.tail)
+            raise OSError(exc.errno, exc.strerror, str(self.path)) from None
+        self.end, self.tail = self.end + len(text), tail
+
+    def add(self, record: dict) -> None:
+        self._write((",\n" if self.count else "") + json.dumps(record))
+        self.count += 1
+
+    def set_cancelled(self, cancelled: bool) -> None:
+        self.cancelled = cancelled
+        self._write("")
+
+    def close(self) -> None:
+        if self.fd is not None:
+            os.close(self.fd)
+            self.fd = None
+
+
+def _exr_os_error(exc: RuntimeError, path: Path) -> OSError | None:
+    """OpenEXR reports a failed write as RuntimeError with the system's message only."""
+    for code in (errno.ENOSPC, errno.EDQUOT, errno.EACCES, errno.EROFS, errno.EIO):
+        if os.strerror(code) in str(exc):
+            return OSError(code, os.strerror(code), str(path))
+    return None
+
+
+def animation_frames(scene: bpy.types.Scene) -> tuple[int, int, int]:
+    """The scene's frame range and step, as Render Animation (``blender -a``) renders it."""
+    return scene.frame_start, scene.frame_end, max(1, scene.frame_step)
+
+
+def render_output_file(scene: bpy.types.Scene, frame: int) -> Path:
+    """Where Blender's render output path puts ``frame`` (``//`` and ``#`` as Blender reads
+    them), as an EXR."""
+    path, ext = scene.render.frame_path(frame=frame), scene.render.file_extension
+    if scene.render.use_file_extension and ext and path.endswith(ext):
+        path = path[: -len(ext)]
+    return Path(os.path.abspath(path + ".exr"))
 
 
 class InProcess:
@@ -42,7 +146,13 @@ class InProcess:
         result = self.engine.update(scene, stats)
         passes = core.render.deferred.render(self.engine, scene, result, stats)
         t_w = time.perf_counter()
-        core.render.exr.write_multilayer(exr_path, passes)
+        try:
+            core.render.exr.write_multilayer(exr_path, passes)
+        except RuntimeError as exc:
+            os_exc = _exr_os_error(exc, exr_path)
+            if os_exc is None:
+                raise
+            raise os_exc from None
         stats.add_ms("write", time.perf_counter() - t_w)
         return stats.as_dict()
 
@@ -96,21 +206,24 @@ def unmodelled_warnings(dropped: dict) -> list[str]:
 
 
 class BatchJob:
-    """Renders ``frames`` (default: the scene's range) of ``scene`` into ``out_dir``, one frame
-    in flight at a time. ``run`` renders them all (blocking); ``step`` advances without
-    blocking, as the modal operator's timer drives it; ``cancel`` keeps every finished frame
-    and removes the unfinished one. ``log(message)`` hears one line per finished frame and the
-    warnings about unmodelled light."""
+    """Renders ``frames`` ((first, last) or (first, last, step); default: the scene's range)
+    of ``scene`` into ``out_dir`` as NNNN.exr, or, with no ``out_dir``, where the scene's
+    render output path puts each frame; one frame in flight at a time. ``run`` renders them
+    all (blocking); ``step`` advances without blocking, as the modal operator's timer drives
+    it; ``cancel`` keeps every finished frame and removes the unfinished one. ``log(message)``
+    hears one line per finished frame and the warnings about unmodelled light."""
 
     def __init__(self, scene: bpy.types.Scene, out_dir, frames=None, resolution=None,
                  overrides: dict | None = None, in_process: bool = False,
                  log: Callable[[str], None] | None = None):
         self.scene_name = scene.name
-        self.out = Path(bpy.path.abspath(str(out_dir)))
-        first, last = frames or (scene.frame_start, scene.frame_end)
-        if last < first:
+        first, last, *step = frames or (scene.frame_start, scene.frame_end)
+        if last < first or (step and step[0] < 1):
             raise ValueError(f"frame range {first}-{last} is empty")
-        self.frames = list(range(int(first), int(last) + 1))
+        self.frames = list(range(int(first), int(last) + 1, int(step[0]) if step else 1))
+        self.render_output = not out_dir
+        self.out = (render_output_file(scene, self.frames[0]).parent if self.render_output
+                    else Path(os.path.abspath(bpy.path.abspath(str(out_dir)))))
         self.resolution = resolution
         self.overrides = dict(overrides or {})
         self.in_process = in_process
@@ -119,6 +232,8 @@ class BatchJob:
         self.record = {"scene": scene.name, "settings": None, "frames": [], "cancelled": False}
         self.original_frame = scene.frame_current
         self.renderer: InProcess | InWorker | None = None
+        self.stats: StatsFile | None = None
+        self.started = False
         self.pending = None
         self.cancelled = False
         self.error = ""
@@ -139,11 +254,25 @@ class BatchJob:
         return self.pending is None and (len(self.done) == self.total or self.cancelled
                                          or bool(self.error))
 
+    def frame_file(self, frame: int) -> Path:
+        """The EXR of ``frame``."""
+        if self.render_output:
+            return render_output_file(self.scene, frame)
+        return self.out / f"{frame:04d}.exr"
+
     def start(self) -> None:
+        """Create the output folder, remove what a killed run left there and check that it
+        takes a write (ValueError naming the folder and the problem)."""
         try:
             self.out.mkdir(parents=True, exist_ok=True)
+            remove_stale_tmp(self.out)
+            with tempfile.TemporaryFile(dir=self.out) as fh:
+                fh.write(b"\0")
+                fh.flush()
+                os.fsync(fh.fileno())
         except OSError as exc:
-            raise ValueError(f"cannot create '{self.out}': {exc.strerror}") from None
+            raise ValueError(os_error_text(exc, self.out)) from None
+        self.started = True
         self.renderer = InProcess() if self.in_process else InWorker()
 
     def _send(self, frame: int) -> None:
@@ -158,11 +287,12 @@ class BatchJob:
         t_ex = (time.perf_counter() - t_ex) * 1000.0
         if self.record["settings"] is None:
             self.record["settings"] = core_scene.settings.as_dict()
+            self._open_stats()
             for line in unmodelled_warnings(core_scene.dropped):
                 self._log(f"warning: {line}")
         entry = {"frame": frame, "t0": t0, "extract": t_ex, "timings": timings,
                  "intensity": core_scene.settings.intensity}
-        self.pending = (entry, self.renderer.submit(core_scene, self.out / f"{frame:04d}.exr"))
+        self.pending = (entry, self.renderer.submit(core_scene, self.frame_file(frame)))
 
     def _collect(self, block: bool) -> bool:
         """Take the frame in flight if it is done; False while it is not."""
@@ -174,13 +304,14 @@ class BatchJob:
         frame = entry["frame"]
         stats.setdefault("ms", {})["extract"] = entry["extract"]
         stats["ms"]["total"] = (time.perf_counter() - entry["t0"]) * 1000.0
-        self.record["frames"].append({"frame": frame, **stats, "intensity": entry["intensity"],
-                                      "extract_ms": entry["timings"]})
+        record = {"frame": frame, **stats, "intensity": entry["intensity"],
+                  "extract_ms": entry["timings"]}
+        self.record["frames"].append(record)
         self.done.append(frame)
-        self._write_stats()
+        self.stats.add(record)
         ms = stats["ms"]
         self._log(f"frame {frame} ({len(self.done)}/{self.total}): {ms['total']:.0f} ms, "
-                  f"LPV {ms.get('lpv_update', 0):.0f} ms -> {self.out / f'{frame:04d}.exr'}")
+                  f"LPV {ms.get('lpv_update', 0):.0f} ms -> {self.frame_file(frame)}")
         return True
 
     def step(self, block: bool = False) -> bool:
@@ -195,9 +326,11 @@ class BatchJob:
                 return False
             frame = self.frames[len(self.done)]
             self._send(frame)
-        except (ValueError, WorkerError) as exc:
+        except (ValueError, WorkerError, OSError) as exc:
             self.pending = None
-            self.error = f"frame {frame}: {exc}"
+            why = os_error_text(exc, exc.filename or self.out) if isinstance(exc, OSError) \
+                else exc
+            self.error = f"frame {frame}: {why}"
             return False
         return True
 
@@ -205,22 +338,28 @@ class BatchJob:
         if self.log is not None:
             self.log(message)
 
-    def _write_stats(self) -> None:
-        self.record["cancelled"] = self.cancelled
-        write_json_atomic(self.out / "stats.json", self.record)
+    def _open_stats(self) -> None:
+        self.stats = StatsFile(self.out / "stats.json",
+                               {"scene": self.scene_name, "settings": self.record["settings"]})
 
     def cancel(self) -> None:
         """Stop now: the frame in flight is dropped, finished frames stay."""
-        self.cancelled = True
+        self.cancelled = self.record["cancelled"] = True
+        if self.pending is not None and self.in_process:  # already written: keep its record
+            self._collect(block=True)
         if self.pending is not None and self.renderer is not None:
             self.renderer.cancel()
             self.renderer = None
-            self.pending = None
-            for tmp in self.out.glob(".*.tmp"):
-                tmp.unlink(missing_ok=True)
-        self._write_stats()
+        self.pending = None
+        if self.started:
+            remove_stale_tmp(self.out, own=True)
+            if self.stats is None:
+                self._open_stats()
+            self.stats.set_cancelled(True)
 
     def close(self) -> None:
+        if self.stats is not None:
+            self.stats.close()
         if self.renderer is not None:
             self.renderer.close()
             self.renderer = None
@@ -234,6 +373,9 @@ class BatchJob:
         try:
             while self.step(block=True):
                 pass
+        except KeyboardInterrupt:
+            self.cancel()
+            raise
         finally:
             self.close()
         if self.error:
