@@ -83,7 +83,7 @@ def test_render_batch_renders_every_frame_with_keyframed_intensity(box, tmp_path
     box.lpv.intensity = 2.0
     box.lpv.keyframe_insert("intensity", frame=2)
     box.frame_start, box.frame_end = 1, 2
-    assert bpy.ops.lpv.render_batch(directory=str(tmp_path)) == {"FINISHED"}
+    assert bpy.ops.lpv.render_batch(directory=str(tmp_path), frames="ANIMATION") == {"FINISHED"}
     stats = json.loads((tmp_path / "stats.json").read_text())
     assert [f["frame"] for f in stats["frames"]] == [1, 2]
     assert [f["intensity"] for f in stats["frames"]] == [pytest.approx(1.0), pytest.approx(2.0)]

@@ -424,8 +424,8 @@ def test_batch_cli_reads_the_blends_gi_settings_and_keyframes(tmp_path):
                           capture_output=True, text=True, check=False, timeout=120)
     assert proc.returncode == 0, proc.stderr[-2000:]
     out = tmp_path / "out"
-    proc = subprocess.run([sys.executable, "-m", "lpv_addon.batch", str(blend), "--out",
-                           str(out), "--quiet"], cwd=ROOT, capture_output=True, text=True,
+    proc = subprocess.run([sys.executable, "-m", "lpv_addon.batch", str(blend), "--animation",
+                           "--out", str(out), "--quiet"], cwd=ROOT, capture_output=True, text=True,
                           check=False, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     stats = json.loads((out / "stats.json").read_text())
