@@ -141,10 +141,10 @@ def test_large_grids_keep_weights_and_transmittances_apart_with_the_same_result(
 
 @pytest.mark.parametrize("iterations", [0, 40])
 def test_a_grid_too_large_for_memory_is_refused_before_any_work(iterations):
-    """grid_resolution 128 would need ~12.7 GB for the sweep ("dom" sweeps whatever the
-    iterations setting): a clear error naming the setting, raised by the engine before the
-    RSM is rendered (not a MemoryError later)."""
-    figure = "12.7"
+    """grid_resolution 128 would need ~13.3 GB for the sweep with its shell ("dom" sweeps
+    whatever the iterations setting): a clear error naming the setting with the memory
+    guard's figure, raised by GISettings before the RSM is rendered (not a MemoryError)."""
+    figure = "13.3"
     from lpv_core import engine
     from lpv_core.propagation import sweep
     from lpv_core.scene import GISettings
@@ -152,9 +152,9 @@ def test_a_grid_too_large_for_memory_is_refused_before_any_work(iterations):
 
     ordinates.check_memory(64)  # ~0.9 GB: fine
     sweep.check_memory(64)  # ~2.4 GB: fine
-    sc = demo.cornell_box("SPOT", (8, 8), GISettings(grid_resolution=128, backend="numpy",
-                                                     iterations=iterations))
     stats = engine.Stats()
     with pytest.raises(ValueError, match=f"grid_resolution 128 needs about {figure} GB"):
+        sc = demo.cornell_box("SPOT", (8, 8), GISettings(grid_resolution=128, backend="numpy",
+                                                         iterations=iterations))
         engine.Engine().update(sc, stats)
     assert "rsm" not in stats.ms

@@ -8,6 +8,7 @@ build it directly. Nothing here imports bpy.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -95,7 +96,9 @@ class Camera:
 
 @dataclass
 class GISettings:
-    """Quality and artist settings for one LPV update."""
+    """Quality and artist settings for one LPV update. Each value must lie in its
+    SETTING_RANGES entry (docs/user-guide.md lists them): construction and ``updated`` raise
+    ValueError naming the setting, the value and the range."""
 
     grid_resolution: int = 16
     cascades: int = 3  # at most this many; with cascades_auto the planner picks per view
@@ -119,6 +122,8 @@ class GISettings:
     def __post_init__(self) -> None:
         if self.angular not in ANGULAR_MODELS:
             raise ValueError(_angular_error(self.angular))
+        for f in dataclasses.fields(self):
+            setattr(self, f.name, _checked(f.name, getattr(self, f.name)))
 
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -139,6 +144,68 @@ class GISettings:
 
 
 ANGULAR_MODELS = ("dom", "sh")  # the transport models (propagation/)
+BACKENDS = ("auto", "numpy", "gl")
+# What each GI setting may be (GISettings refuses the rest; the add-on's properties take their
+# limits from here): numbers (low, high) inclusive, whole numbers where the bounds are ints;
+# names: the choices; None: on/off. grid_resolution's upper end is what the propagation's
+# memory guard admits (max_grid_resolution).
+SETTING_RANGES = {
+    "grid_resolution": (4, None), "cascades": (1, 8), "cascades_auto": None,
+    "iterations": (0, 1000), "angular": ANGULAR_MODELS, "rsm_resolution": (16, 2048),
+    "occlusion": None, "bounces": (1, 8), "backend": BACKENDS, "intensity": (0.0, 100.0),
+    "shadow_resolution": (16, 4096), "antialias": (1, 8),
+}
+
+
+@functools.cache
+def max_grid_resolution() -> int:
+    """The largest grid the engine's memory guard admits (sweep.check_memory, with the shell
+    several cascades need): the upper end of grid_resolution."""
+    from ..propagation import sweep  # the propagation imports this module
+
+    r = SETTING_RANGES["grid_resolution"][0]
+    while sweep.memory_bytes(r + 1) <= sweep.ordinates.STATE_BYTES:
+        r += 1
+    return r
+
+
+def setting_range(key: str):
+    """SETTING_RANGES[key], grid_resolution's upper end filled in."""
+    if key == "grid_resolution":
+        return SETTING_RANGES[key][0], max_grid_resolution()
+    return SETTING_RANGES[key]
+
+
+def _checked(key: str, value):
+    """``value`` as setting ``key`` holds it, or ValueError naming the setting, the value and
+    what it may be."""
+    allowed = setting_range(key)
+    shown = f"{value:g}" if isinstance(value, float) else repr(value)
+    if allowed is None:
+        if isinstance(value, (bool, np.bool_)) or (isinstance(value, int) and value in (0, 1)):
+            return bool(value)
+        raise ValueError(f"GI setting '{key}': {shown} is not on or off (true or false)")
+    if isinstance(allowed[0], str):
+        if value in allowed:
+            return value
+        raise ValueError(f"GI setting '{key}': {shown} is not one of {', '.join(allowed)}")
+    lo, hi = allowed
+    whole = isinstance(lo, int)
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        number = float("nan")
+    if lo <= number <= hi and (not whole or number.is_integer()):
+        return int(number) if whole else number
+    why = f"{'a whole number' if whole else 'a number'} from {lo} to {hi}"
+    if key == "grid_resolution" and hi < number < 4096:  # the guard's figure (cheap below 4096)
+        from ..propagation import sweep
+
+        try:
+            sweep.check_memory(int(number))
+        except ValueError as exc:
+            why += f": {exc}"
+    raise ValueError(f"GI setting '{key}': {shown} is out of range ({why})")
 RETIRED_SETTINGS = {
     "reprojection": "KD10's re-projection (side faces re-emit along their normal) is the only "
                     "one; remove the setting",
@@ -155,16 +222,18 @@ def _angular_error(value) -> str:
 
 
 def _coerce(key: str, value, current):
+    """A string (the CLI's --set) read as the setting's type; _checked then checks the range."""
     if isinstance(value, str) and not isinstance(current, str):
+        low = value.strip().lower()
+        if isinstance(current, bool) and low in ("1", "0", "true", "false", "on", "off", "yes",
+                                                  "no"):
+            return low in ("1", "true", "on", "yes")
         try:
-            if isinstance(current, bool):
-                low = value.strip().lower()
-                if low not in ("1", "0", "true", "false", "on", "off", "yes", "no"):
-                    raise ValueError
-                return low in ("1", "true", "on", "yes")
-            return type(current)(float(value)) if isinstance(current, int) else float(value)
+            if not isinstance(current, bool):
+                return float(low)
         except ValueError:
-            raise ValueError(f"setting '{key}': cannot read '{value}' as {type(current).__name__}")
+            pass
+        raise ValueError(f"setting '{key}': cannot read '{value}' as {type(current).__name__}")
     return value
 
 
@@ -268,7 +337,10 @@ def make_scene(
 
     Drops triangles with NaN/Inf corners, zero area, or a zero-length (or non-finite) normal;
     missing normals default to the face normal. Material indices out of range fall back to a
-    default grey material appended at the end.
+    default grey material appended at the end. Lights with a non-finite transform or power, or
+    a negative power, and areas with a non-finite transform are dropped; non-finite colours and
+    values of lights, materials and areas take their defaults, negative ones 0 (a light's GI
+    intensity may be negative); each counted in ``dropped``.
     """
     pos = np.asarray(positions, np.float64).reshape(-1, 3, 3)
     t = pos.shape[0]
@@ -314,20 +386,86 @@ def make_scene(
             if arr.shape != (t,):
                 raise ValueError(f"{fname} flags have shape {arr.shape}, expected ({t},)")
             flags[fname] = np.ascontiguousarray(arr[keep])
+    lights, areas = _valid_lights(lights or [], dropped), _valid_areas(areas or [], dropped)
+    materials = _repaired_all(materials, "materials", _MATERIAL_LOWS, dropped)
     return Scene(
         **flags,
-        areas=list(areas or []),
+        areas=areas,
         positions=np.ascontiguousarray(pos[keep]),
         normals=np.ascontiguousarray(nrm[keep]),
         material_index=np.ascontiguousarray(mat[keep]),
         materials=materials or [Material("default")],
-        lights=list(lights or []),
+        lights=lights,
         camera=camera,
         settings=settings or GISettings(),
         object_index=None if obj is None else np.ascontiguousarray(obj[keep]),
         object_names=list(object_names or []),
         dropped=dropped,
     )
+
+
+# Per field, the lowest value make_scene keeps (None: any finite value).
+_LIGHT_LOWS = {"color": 0.0, "gi_color": 0.0, "gi_intensity": None, "spot_size": 0.0,
+               "spot_blend": 0.0, "radius": 0.0, "size": 0.0}
+_MATERIAL_LOWS = {"albedo": 0.0, "bleed_color": 0.0, "bleed_intensity": 0.0}
+_AREA_LOWS = {"falloff": 0.0, "intensity": 0.0, "tint": 0.0}
+
+
+def _repaired(item, lows: dict):
+    """``item`` (a Light, Material or Area) with each field of ``lows`` finite and at least its
+    low: a non-finite entry takes the field's default, a lower one the low. The item itself
+    when nothing changes, else (a fixed copy, True)."""
+    fixes = {}
+    for f in dataclasses.fields(item):
+        value = getattr(item, f.name)
+        if f.name not in lows or value is None:
+            continue
+        default = f.default_factory() if f.default is dataclasses.MISSING else f.default
+        with np.errstate(invalid="ignore"):
+            v = np.asarray(value, np.float64)
+            fixed = v if default is None else np.where(np.isfinite(v), v, default)
+            if lows[f.name] is not None:
+                fixed = np.maximum(fixed, lows[f.name])
+        if not np.isfinite(fixed).all():
+            fixes[f.name] = default  # the bleed colour: None (the albedo)
+        elif not np.array_equal(fixed, v):
+            fixes[f.name] = (float(fixed) if fixed.ndim == 0 else tuple(fixed.tolist())
+                             if isinstance(value, tuple) else fixed.astype(np.float32))
+    return (dataclasses.replace(item, **fixes), True) if fixes else (item, False)
+
+
+def _repaired_all(items: list, kind: str, lows: dict, dropped: dict) -> list:
+    """_repaired over ``items``, counting the fixed ones in ``dropped``."""
+    out = [_repaired(item, lows) for item in items]
+    fixed = sum(changed for _, changed in out)
+    if fixed:
+        dropped[f"{kind}_with_invalid_values_defaulted"] = fixed
+    return [item for item, _ in out]
+
+
+def _valid_lights(lights: list, dropped: dict) -> list:
+    """Lights with a finite transform and a finite, non-negative power, their other values
+    repaired (_repaired); the rest counted in ``dropped``."""
+    keep = []
+    for light in lights:
+        m = np.asarray(light.matrix, np.float64)
+        if m.shape != (4, 4) or not np.isfinite(m).all() or not np.isfinite(light.power):
+            key = "lights_with_nonfinite_transform_or_power"
+        elif light.power < 0:
+            key = "lights_with_negative_power"
+        else:
+            keep.append(light)
+            continue
+        dropped[key] = dropped.get(key, 0) + 1
+    return _repaired_all(keep, "lights", _LIGHT_LOWS, dropped)
+
+
+def _valid_areas(areas: list, dropped: dict) -> list:
+    """Areas with a finite transform, their values repaired; the rest counted."""
+    keep = [a for a in areas if np.isfinite(np.asarray(a.matrix, np.float64)).all()]
+    if len(keep) < len(areas):
+        dropped["areas_with_nonfinite_transform"] = len(areas) - len(keep)
+    return _repaired_all(keep, "areas", _AREA_LOWS, dropped)
 
 
 def cross3(a, b) -> np.ndarray:
