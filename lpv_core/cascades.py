@@ -13,6 +13,8 @@ propagation), and a lookup adds what every cascade holding the point says.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from .grid import Grid, fit_grid
@@ -73,6 +75,76 @@ def fit_bounds(scene) -> tuple[np.ndarray, np.ndarray, int, float]:
     outside = int((~keep).sum())
     share = float(area[~keep].sum() / total) if total > 0 else 0.0
     return kept.min(axis=0), kept.max(axis=0), outside, share
+
+
+# A point's space is enclosed when at most this share of the sphere around it sees no geometry
+# (the share planner.ENCLOSED_SKY_SHARE allows a camera's pixels).
+ENCLOSED_OPEN_SHARE = 0.05
+# The LPV box becomes the space enclosing the camera when that is at most this fraction of the
+# fitted box's extent: a cascade level (cells halve) or more gained; below it the fitted box
+# (exact triangle bounds) is kept, and nothing changes for a room that is the whole scene.
+ENCLOSURE_SCALE = 0.5
+
+
+@dataclass(frozen=True)
+class Surroundings:
+    """What a point sees in every direction (Engine.surroundings: a small cube map from it):
+    the surface points hit (N, 3) with the solid angle of each sample (N,) sr, and the share
+    of the sphere that sees no geometry."""
+
+    origin: np.ndarray
+    points: np.ndarray
+    solid: np.ndarray
+    open_share: float
+    tolerance: float = 0.0  # position error of the points (float32 targets), m
+
+    @property
+    def enclosed(self) -> bool:
+        return self.open_share <= ENCLOSED_OPEN_SHARE and len(self.points) > 0
+
+    def size(self, share: float = 1.0 - 2.0 * ENCLOSED_OPEN_SHARE) -> float:
+        """Diameter of the space around the point: twice the distance within which ``share``
+        of the sphere hits geometry (inf when more than 1 - share of it is open)."""
+        if len(self.points) == 0:
+            return float("inf")
+        dist = np.linalg.norm(self.points - self.origin, axis=1)
+        order = np.argsort(dist)
+        cum = np.cumsum(self.solid[order]) / (4.0 * np.pi)
+        i = int(np.searchsorted(cum, share, side="left"))
+        return float("inf") if i >= len(order) else 2.0 * float(dist[order[i]])
+
+
+def enclosure_bounds(scene, lo, hi, around: Surroundings | None):
+    """(lo, hi, triangles left out, their area share) of the closed space around the camera,
+    when it is one (``around.enclosed``) at most ENCLOSURE_SCALE of the fitted box [lo, hi]
+    wide, else None.
+
+    A room standing on a 2 km ground: the area-weighted fence keeps the ground (it holds the
+    area), the cells become 140 m wide and the room gets no indirect light. Light cannot pass
+    the closed space's walls: lamps outside it add nothing to what the camera sees, lamps
+    inside keep their light inside, so the LPV needs only that space. Its box is the bounds of
+    the points the camera's eye sees all around, each face moved onto the triangle corners
+    within the points' float32 error (walls are exact planes: the box is the same wherever the
+    eye stands in the room, and the room's own bounds when the room is the scene)."""
+    if around is None or not around.enclosed:
+        return None
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    e_lo, e_hi = around.points.min(axis=0), around.points.max(axis=0)
+    if float(np.max(e_hi - e_lo)) > ENCLOSURE_SCALE * float(np.max(hi - lo)):
+        return None
+    p = np.asarray(scene.positions, np.float64).reshape(-1, 3, 3)
+    tol = max(around.tolerance, 1e-12 * float(np.max(np.abs(e_hi)) + np.max(np.abs(e_lo))))
+    corners = p.reshape(-1, 3)
+    for a in range(3):
+        c = corners[:, a]
+        near = c[np.abs(c - e_lo[a]) <= tol]
+        e_lo[a] = near.min() if near.size else e_lo[a] - tol
+        near = c[np.abs(c - e_hi[a]) <= tol]
+        e_hi[a] = near.max() if near.size else e_hi[a] + tol
+    out = np.any(p.max(axis=1) < e_lo, axis=1) | np.any(p.min(axis=1) > e_hi, axis=1)
+    area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+    total = float(area.sum())
+    return e_lo, e_hi, int(out.sum()), float(area[out].sum() / total) if total > 0 else 0.0
 
 
 def _weighted_quantile(x: np.ndarray, w: np.ndarray, q: float) -> float:

@@ -234,7 +234,7 @@ class Engine:
                                         "enclosed": enclosed is not None}
             if outside and not any(s["stage"] == "lpv" and s["what"].endswith("surface area)")
                                    for s in stats.skipped):
-                why = ("outside the closed space the camera is in (no light passes its walls): "
+                why = ("outside the closed space enclosing the camera (no light passes its walls): "
                        "outside the LPV, they get no GI" if enclosed is not None
                        else "far outliers: outside the LPV, they get no GI")
                 stats.skip("lpv", f"{outside} triangles ({share:.2%} of the surface area)", why)

@@ -100,10 +100,16 @@ ENCLOSED_SKY_SHARE = 0.05
 
 
 def cascade_count(max_count: int, lo, hi, eye, visible: np.ndarray, sky_share: float,
-                  previous: int | None = None) -> tuple[int, str]:
+                  previous: int | None = None, space: float | None = None) -> tuple[int, str]:
     """(number of cascades, why) for a view: ``visible`` (N, 3) surface points the camera
     sees (a small G-buffer), ``sky_share`` the share of its pixels that see no geometry,
-    ``previous`` the count of the last update (hysteresis). At most ``max_count``."""
+    ``previous`` the count of the last update (hysteresis), ``space`` the size of the space
+    around the eye (cascades.Surroundings.size; None: not known). At most ``max_count``.
+
+    A view is enclosed (one cascade) when the eye is inside the box [lo, hi], sees geometry in
+    all but ENCLOSED_SKY_SHARE of its pixels, and the space around it is not much smaller than
+    the box (at least cascades.ENCLOSURE_SCALE of it): a camera in a small room of a large
+    LPV box needs finer cascades like any near view."""
     max_count = max(int(max_count), 1)
     if max_count == 1:
         return 1, "one cascade allowed"
@@ -113,7 +119,8 @@ def cascade_count(max_count: int, lo, hi, eye, visible: np.ndarray, sky_share: f
     if visible is None or len(visible) == 0:
         return 1, "the camera sees no geometry"
     inside = bool(np.all(eye >= lo) and np.all(eye <= hi))
-    if inside and sky_share < ENCLOSED_SKY_SHARE:
+    roomy = space is None or space >= cascades_mod.ENCLOSURE_SCALE * float(np.max(hi - lo))
+    if inside and sky_share < ENCLOSED_SKY_SHARE and roomy:
         return 1, (f"enclosed view: the camera is inside the scene and sees geometry in "
                    f"{100 * (1 - sky_share):.0f}% of its pixels (the light stays in a space "
                    "one grid resolves)")
