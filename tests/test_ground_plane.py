@@ -75,3 +75,17 @@ def test_open_outdoor_scene_on_a_big_ground_keeps_its_cascades():
     f_lo, f_hi = finest.bounds()
     eye = sc.camera.position
     assert np.all(f_lo <= eye) and np.all(eye <= f_hi)  # the finest cascade holds the camera
+
+
+def test_a_small_space_in_a_large_box_is_not_an_enclosed_view():
+    """The camera inside the box and surrounded by walls, but the space around it (the
+    surroundings' size) a hundredth of the box: finer cascades, by the near-view rule."""
+    from lpv_core import planner
+
+    lo, hi = np.array([-1000.0, -1000.0, -1.0]), np.array([1000.0, 1000.0, 3.0])
+    eye = np.array([0.0, 0.0, 1.0])
+    pts = eye + np.outer(np.linspace(1.0, 2.0, 50), [1.0, 0.0, 0.0])
+    assert planner.cascade_count(3, lo, hi, eye, pts, 0.0)[0] == 1  # without the space: enclosed
+    count, why = planner.cascade_count(3, lo, hi, eye, pts, 0.0, space=4.0)
+    assert count == 3 and "enclosed" not in why
+    assert planner.cascade_count(3, lo, hi, eye, pts, 0.0, space=1500.0)[0] == 1
