@@ -35,7 +35,7 @@ def _scene_poll(cls, context, need_camera: bool = False) -> bool:
 
 
 class LPV_OT_update(bpy.types.Operator):
-    """Recompute the LPV of the current scene now and show it in the viewport"""
+    """Recompute the bounced light of this scene now and show it in the viewport"""
 
     bl_idname = "lpv.update"
     bl_label = "Update LPV"
@@ -73,7 +73,7 @@ class LPV_OT_update(bpy.types.Operator):
 
 
 class LPV_OT_add_area(bpy.types.Operator):
-    """Add a GI area: a box (an Empty with cube display) that clips or scales GI"""
+    """Add a GI area: a box that keeps bounced light in or out, or scales and tints it"""
 
     bl_idname = "lpv.add_area"
     bl_label = "Add GI Area"
@@ -125,8 +125,7 @@ def _frame_range(op, scene) -> tuple[int, ...]:
 
 
 class LPV_OT_render_batch(bpy.types.Operator):
-    """Render the frame range with LPV GI into multi-layer EXRs (Cycles pass names) and
-    stats.json; Esc cancels and keeps the finished frames"""
+    """Render frames with LPV GI into multi-layer EXR files; Esc stops, keeping those done"""
 
     bl_idname = "lpv.render_batch"
     bl_label = "Render Batch"
@@ -263,8 +262,7 @@ def _show_image(context, img) -> bool:
 
 
 class LPV_OT_compare_cycles(bpy.types.Operator):
-    """Render a low-resolution Cycles reference and show where the LPV preview is too bright
-    (red) or too dark (green)"""
+    """Render a small Cycles image and show where LPV GI is too bright (red) or dark (green)"""
 
     bl_idname = "lpv.compare_cycles"
     bl_label = "Compare with Cycles"
