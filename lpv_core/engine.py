@@ -17,7 +17,7 @@ from . import areas, cascades, geometry_volume, injection, lookup, planner, prop
 from .grid import Grid
 from .propagation import sweep
 from .runtime import blas, heap, jit
-from .scene.model import Scene
+from .scene.model import Scene, max_grid_resolution
 
 
 @dataclass
@@ -135,6 +135,7 @@ class Engine:
         self._refl_key = None  # reflectance digest the cached grids were made with
         self._around = None  # (geometry key, cascades.Surroundings of the camera's eye)
         self._enclosure = None  # (Surroundings, cascades.enclosure_bounds of it)
+        self._light_spaces: dict = {}  # (light position, cell) -> planner.enclosure_note
         from .render.shadows import ShadowCache
 
         self._shadows = ShadowCache()  # direct-light shadow maps of the current geometry
@@ -263,6 +264,41 @@ class Engine:
         self._around = (geo, around)
         return around
 
+    def _small_enclosures(self, scene: Scene, lights: list, chain: list, geo: str,
+                          stats: Stats) -> None:
+        """List in the stats (skip "resolution", info "unresolved_enclosures") every point,
+        spot or area light inside a closed space the cascade carrying it does not resolve
+        (planner.enclosure_note), with the grid resolution that does. A light gets a
+        SURROUND_PIXELS^2 cube map only with an occluder within planner.enclosure_reach;
+        cached per geometry, light position and cell size."""
+        lights = [li for li in lights if li.type != "SUN"]
+        if not lights:
+            return
+        if self._light_spaces.get("geo") != geo:
+            self._light_spaces = {"geo": geo}
+        level = cascades.assign(chain, np.array([li.position for li in lights]))
+        for light, c in zip(lights, level):
+            grid = chain[c]
+            key = (light.position.tobytes(), grid.cell_size, grid.resolution)
+            if key not in self._light_spaces:
+                note, reach = None, planner.enclosure_reach(grid.cell_size)
+                if planner.occluders_near(scene, light.position, reach):
+                    with Timer(stats, "planner"):
+                        points, solid, missed, tol = self.raster.surroundings(
+                            light.position, 1e-3 * grid.cell_size, 1.01 * reach,
+                            SURROUND_PIXELS)
+                    around = cascades.Surroundings(light.position, points, solid,
+                                                   missed / (4.0 * np.pi), tol)
+                    note = planner.enclosure_note(light, around, grid,
+                                                  planner.cascade_label(int(c), grid),
+                                                  max_grid_resolution())
+                self._light_spaces[key] = note
+            note = self._light_spaces[key]
+            if note is not None:
+                stats.skip("resolution", note["what"], note["reason"])
+                stats.info.setdefault("unresolved_enclosures", []).append(
+                    {k: v for k, v in note.items() if k != "reason"})
+
     def shadow_map(self, scene: Scene, light, bounds, resolution: int,
                    stats: Stats | None = None):
         """direct.render_shadow_map at the light's share of the shadow budget
@@ -384,6 +420,7 @@ class Engine:
                                                stats)
             per_light[light.name], vpl_sample[light.name] = grids, sample
             vpl_count += count
+        self._small_enclosures(scene, active, chain, geo, stats)
         return self._result(chain, per_light, vpl_sample, active, settings.intensity,
                             visibilities, stats, vpl_count, run.iterations, t0,
                             {g: self.gaps(g) for g in chain})
