@@ -4,16 +4,18 @@
 - ``viewport/``: the live LPV (``live``), app handlers and the refresh timer (``handlers``),
   the overlay drawn with ``gpu`` (``overlay``);
 - ``scene_io/``: Blender -> core scene (``extract``), the built-in Cornell box (``demo``);
-- ``render/``: frame ranges to EXR (``frames``), the Cycles comparison (``compare``, ``cycles``);
+- ``render/``: the render engine ``LPV_GI`` (``engine``; its Rendered viewport:
+  ``viewport/rendered``), frame ranges to EXR (``frames``), the Cycles comparison (``compare``,
+  ``cycles``);
 - ``worker_client``: the ``lpv_core.worker`` process the engine runs in;
 - ``batch``: the CLI, ``python -m lpv_addon.batch``.
 
-``register`` installs properties, operators, panels, app handlers, the refresh timer and the
-viewport draw handler; ``unregister`` removes all of them, stops the worker process and drops
-every GPU resource, so enabling and disabling the add-on leaves nothing behind.
+``register`` installs properties, operators, panels, app handlers, the refresh timer, the
+viewport draw handler and the render engine; ``unregister`` removes all of them, stops the
+worker processes and drops every GPU resource, so enabling and disabling the add-on leaves nothing behind.
 """
 
-_MODULES = ("properties", "operators", "ui", "viewport.handlers")
+_MODULES = ("properties", "operators", "ui", "viewport.handlers", "render.engine")
 
 
 def _modules():

@@ -1,11 +1,38 @@
-"""Panels: the "LPV" sidebar tab of the 3D viewport and GI sub-panels in the Light, Object and
-Material properties."""
+"""Panels: the "LPV" sidebar tab of the 3D viewport, GI sub-panels in the Light, Object and
+Material properties, and the LPV GI engine's Render properties. With the engine picked,
+Blender's engine-neutral panels and EEVEE's material, light and world panels show too."""
 
 from __future__ import annotations
 
+import textwrap
+
 import bpy
 
+from .render.frames import unmodelled_warnings
 from .viewport import live
+
+ENGINE = "LPV_GI"
+# EEVEE's panels that also describe what LPV GI reads (surface nodes, light settings, world).
+EEVEE_PANELS = ("EEVEE_MATERIAL_PT_context_material", "EEVEE_MATERIAL_PT_surface",
+                "DATA_PT_EEVEE_light", "EEVEE_WORLD_PT_surface")
+
+
+def compat_panels() -> list:
+    """Blender's panels shown for LPV GI: those for every engine (BLENDER_RENDER in their
+    COMPAT_ENGINES, as Cycles picks them) and ``EEVEE_PANELS``."""
+    return [p for p in bpy.types.Panel.__subclasses__() if p.__name__ in EEVEE_PANELS
+            or "BLENDER_RENDER" in getattr(p, "COMPAT_ENGINES", ())]
+
+
+def warning_lines(stats: dict) -> list[str]:
+    """What the LPV left out or approximated, one line each: unmodelled light, dropped input
+    (counts), surfaces outside the LPV, spaces too small for its cells."""
+    dropped = stats.get("dropped", {})
+    lines = unmodelled_warnings(dropped)
+    lines += [f"left out: {n} {key.replace('_', ' ')}" for key, n in sorted(dropped.items())
+              if n and key not in ("world_lighting_ignored", "emissive_materials_ignored")]
+    return lines + [f"{s['what']}: {s['reason']}" for s in stats.get("skipped", [])
+                    if s["stage"] in ("lpv", "resolution")]
 
 
 def _props(context):
@@ -78,6 +105,10 @@ class LPV_PT_main(_Sidebar, bpy.types.Panel):
         col.prop(props, "overlay_exposure")
         layout.prop(props, "live_update")
         layout.operator("lpv.update", icon="FILE_REFRESH")
+        col = layout.column(align=True)
+        for line in warning_lines(live.STATE.current.stats if live.STATE.current else {}):
+            for i, part in enumerate(textwrap.wrap(line, 40)):
+                col.label(text=part, icon="ERROR" if i == 0 else "BLANK1")
 
 
 class LPV_PT_quality(_Sidebar, bpy.types.Panel):
@@ -151,6 +182,28 @@ class LPV_PT_output(_Sidebar, bpy.types.Panel):
         layout.operator("lpv.compare_cycles", icon="IMAGE_DATA")
         if props.compare_summary:
             layout.label(text=props.compare_summary)
+
+
+class LPV_PT_render(bpy.types.Panel):
+    bl_space_type = "PROPERTIES"
+    bl_region_type = "WINDOW"
+    bl_context = "render"
+    bl_label = "LPV GI"
+    COMPAT_ENGINES = {ENGINE}  # noqa: RUF012 - Blender's panels read a set
+
+    @classmethod
+    def poll(cls, context):
+        return context.engine in cls.COMPAT_ENGINES and _props(context) is not None
+
+    def draw(self, context):
+        layout = self.layout
+        layout.use_property_split = True
+        layout.prop(_props(context), "quality")
+        layout.prop(_props(context), "intensity")
+        layout.prop(context.scene.render, "film_transparent")
+        col = layout.column(heading="Passes")
+        for name in ("direct", "indirect", "color"):
+            col.prop(context.view_layer, f"use_pass_diffuse_{name}", text=f"Diffuse {name.title()}")
 
 
 def draw_area(layout, ob) -> None:
@@ -227,15 +280,19 @@ class LPV_PT_material(_Properties, bpy.types.Panel):
 CLASSES = (
     LPV_UL_lights, LPV_UL_areas,
     LPV_PT_main, LPV_PT_quality, LPV_PT_lights, LPV_PT_areas, LPV_PT_stats, LPV_PT_output,
-    LPV_PT_light, LPV_PT_object, LPV_PT_material,
+    LPV_PT_light, LPV_PT_object, LPV_PT_material, LPV_PT_render,
 )
 
 
 def register() -> None:
     for cls in CLASSES:
         bpy.utils.register_class(cls)
+    for panel in compat_panels():
+        panel.COMPAT_ENGINES.add(ENGINE)
 
 
 def unregister() -> None:
+    for panel in compat_panels():
+        panel.COMPAT_ENGINES.discard(ENGINE)
     for cls in reversed(CLASSES):
         bpy.utils.unregister_class(cls)

@@ -558,6 +558,9 @@ def _draw_callback() -> None:
     rv3d = getattr(context, "region_data", None)
     if props is None or rv3d is None or not props.enabled or not props.show_overlay:
         return
+    shading = getattr(getattr(context, "space_data", None), "shading", None)
+    if scene.render.engine == "LPV_GI" and getattr(shading, "type", "") == "RENDERED":
+        return  # the engine's Rendered view holds the indirect light already
     if live.STATE.current is None:
         return
     try:
