@@ -107,11 +107,13 @@ def addon():
 
 
 def test_render_batch_renders_the_current_frame_unless_told_the_animation(addon, box,
-                                                                          tmp_path):
+                                                                          tmp_path,
+                                                                          monkeypatch):
     box.lpv.quality = "DRAFT"
     box.lpv.rsm_resolution = 32
-    assert bpy.ops.lpv.render_batch(directory=str(tmp_path / "still")) == {"FINISHED"}
-    assert sorted(p.name for p in (tmp_path / "still").glob("*.exr")) == ["0002.exr"]
+    monkeypatch.chdir(tmp_path)  # an unsaved file: '//' is the working directory, once
+    assert bpy.ops.lpv.render_batch(directory="//still/") == {"FINISHED"}
+    assert sorted(p.name for p in (tmp_path / "still").iterdir()) == ["0002.exr", "stats.json"]
     box.render.filepath = str(tmp_path / "anim" / "f_")  # no folder given: the output path
     assert box.lpv.batch_directory == ""
     assert bpy.ops.lpv.render_batch(frames="ANIMATION") == {"FINISHED"}
