@@ -21,21 +21,30 @@ from ._core import core
 from .presets import SETTINGS as PRESET_SETTINGS
 from .viewport import live
 
-# Quality presets: name -> (label, description, settings).
+# Quality presets: name -> (label, description, settings). Figures only where the report
+# (docs/report/README.md) measured the preset: Preview is its "LPV defaults" column.
 PRESETS = {
-    "DRAFT": ("Draft", "12^3 grid, 128^2 RSM: fastest (Cornell box indirect error 0.17)",
-        PRESET_SETTINGS["DRAFT"]),
-    "PREVIEW": ("Preview", "16^3 grid, 256^2 RSM: the default (Cornell box indirect error 0.19)",
-        PRESET_SETTINGS["PREVIEW"]),
-    "HIGH": ("High", ("24^3 grid, 512^2 RSM: 3-5x Preview's time; finer cells, less error "
-                      "(point-lit room 0.11, sunlit room 0.34)"),
-        PRESET_SETTINGS["HIGH"]),
+    "DRAFT": ("Draft", "12^3 grid, 128^2 light maps: the fastest, coarsest bounced light",
+              PRESET_SETTINGS["DRAFT"]),
+    "PREVIEW": ("Preview", ("The default, 16^3 grid and 256^2 light maps: indirect error 0.14 "
+                            "to 0.675 on the report's scenes"),
+                PRESET_SETTINGS["PREVIEW"]),
+    "HIGH": ("High", "24^3 grid, 512^2 light maps: finer bounced light, slower than Preview",
+             PRESET_SETTINGS["HIGH"]),
 }
 _APPLYING_PRESET = [False]
 # Defaults follow the core's GISettings, so the add-on and scripts start from the same place.
 _CORE = core.scene.GISettings()
 _DEFAULT_QUALITY = next((k for k, v in PRESETS.items()
                          if all(getattr(_CORE, n) == x for n, x in v[2].items())), "CUSTOM")
+
+
+def _limits(key: str) -> dict:
+    """min/max of a GI setting's property: the core's range (only what can run)."""
+    lo, hi = core.scene.model.setting_range(key)
+    return {"min": lo, "max": hi}
+
+
 # Blender 4.5+ warns about "//" in path properties unless they declare support for it.
 PATH_OPTIONS = {"PATH_SUPPORTS_BLEND_RELATIVE"} if bpy.app.version >= (4, 5, 0) else set()
 
@@ -86,97 +95,97 @@ class LPVSceneSettings(bpy.types.PropertyGroup):
     """Scene-wide LPV GI settings."""
 
     enabled: BoolProperty(
-        name="Enabled", default=True, update=_changed,
-        description="Compute LPV GI (live viewport, batch and comparison)",
+        name="Enabled", default=False, update=_changed,
+        description="Turn LPV GI on for this scene (off in every file until you turn it on)",
     )
     intensity: FloatProperty(
-        name="Intensity", default=1.0, min=0.0, soft_max=4.0, update=_changed,
-        description="Global GI multiplier (keyframable: the batch reads it per frame)",
+        name="GI Intensity", default=1.0, soft_max=4.0, update=_changed, **_limits("intensity"),
+        description="Brightness of all bounced light in the scene (keyframe it to fade GI)",
     )
     quality: EnumProperty(
         name="Quality", update=_quality_changed, default=_DEFAULT_QUALITY,
         items=[(k, v[0], v[1]) for k, v in PRESETS.items()]
-        + [("CUSTOM", "Custom", "Settings edited by hand")],
-        description="Quality preset: sets grid and RSM resolution",
+        + [("CUSTOM", "Custom", "Grid and light map resolution set by hand")],
+        description="Quality preset: sets the grid and light map resolution",
     )
-    grid_resolution: IntProperty(name="Grid Resolution", default=_CORE.grid_resolution, min=4,
-                                 max=128,
-                                 update=_setting_changed,
-                                 description="Cells per side of each LPV cascade")
-    cascades: IntProperty(name="Cascades", default=_CORE.cascades, min=1, max=4,
-                          update=_setting_changed,
-                          description=("Nested LPV grids, cell size doubling: at most this many "
-                                       "with Auto Cascades, else exactly"))
+    grid_resolution: IntProperty(
+        name="Grid Resolution", default=_CORE.grid_resolution, update=_setting_changed,
+        **_limits("grid_resolution"),
+        description="Cells along each side of the GI grid: finer is sharper but much slower")
+    cascades: IntProperty(
+        name="Cascades", default=_CORE.cascades, update=_setting_changed, **_limits("cascades"),
+        description="Nested GI grids, each with cells half the size: finer light near the view")
     cascades_auto: BoolProperty(
         name="Auto Cascades", default=_CORE.cascades_auto, update=_setting_changed,
-        description=("Use as many cascades as the view needs: one when the camera is inside a "
-                     "closed space, more when it sees open ground stretching far from it"))
-    rsm_resolution: IntProperty(name="RSM Resolution", default=_CORE.rsm_resolution, min=16,
-                                max=2048,
-                                update=_setting_changed,
-                                description="Reflective shadow map size per light view")
+        description="Use only the cascades the view needs: one inside a room, more for open views")
+    rsm_resolution: IntProperty(
+        name="RSM Resolution", default=_CORE.rsm_resolution, update=_setting_changed,
+        **_limits("rsm_resolution"),
+        description="Size of the light map each light sees the scene with: finer lit detail")
     antialias: IntProperty(
-        name="Anti-Aliasing", default=_CORE.antialias, min=1, max=4, update=_changed,
-        description=("Samples per pixel side of a rendered frame (batch and compare renders): "
-                     "each pass averages the pixel's area, as Cycles' pixel filter does"))
+        name="Anti-Aliasing", default=_CORE.antialias, update=_changed, **_limits("antialias"),
+        description="Samples per pixel side of rendered frames: smoother edges, longer renders")
     occlusion: BoolProperty(name="Occlusion", default=_CORE.occlusion, update=_changed,
-                            description="Block propagation with the geometry volume")
-    bounces: IntProperty(name="Bounces", default=_CORE.bounces, min=1, max=8, update=_changed,
-                         description="Indirect bounces")
+                            description="Let objects block bounced light (no light through walls)")
+    bounces: IntProperty(name="Bounces", default=_CORE.bounces, update=_changed,
+                         **_limits("bounces"),
+                         description="Times light bounces between surfaces: each adds time")
     backend: EnumProperty(
-        name="Backend", update=_changed,
-        items=[("auto", "Auto", "The faster backend per stage, measured on this machine"),
-               ("numpy", "NumPy", "CPU arrays"), ("gl", "OpenGL", "moderngl compute shaders")],
-        default=_CORE.backend if _CORE.backend in ("auto", "numpy", "gl") else "numpy",
+        name="Backend", update=_changed, default=_CORE.backend,
+        items=[("auto", "Auto", "The faster of processor and graphics card on this computer"),
+               ("numpy", "CPU", "Compute on the processor"),
+               ("gl", "GPU (OpenGL)", "Compute on the graphics card")],
+        description="Where LPV GI is computed",
     )
     # Live viewport
     live_update: BoolProperty(name="Live Update", default=True, update=_changed,
-                              description="Recompute the LPV while you edit the scene")
+                              description="Recompute bounced light while you edit the scene")
     refresh_interval: FloatProperty(
         name="Refresh Interval", default=0.25, min=0.02, max=10.0, subtype="TIME_ABSOLUTE",
-        unit="TIME_ABSOLUTE", description="Seconds between live LPV updates",
+        unit="TIME_ABSOLUTE", description="Seconds between updates of the viewport's GI",
     )
     fade_time: FloatProperty(
         name="Fade-in Time", default=0.3, min=0.0, max=10.0, subtype="TIME_ABSOLUTE",
-        unit="TIME_ABSOLUTE", description="Seconds over which a new LPV result fades in",
+        unit="TIME_ABSOLUTE", description="Seconds over which new GI fades in in the viewport",
     )
     show_overlay: BoolProperty(name="Show Overlay", default=True, update=_changed,
                                description="Draw LPV GI in the 3D viewport")
     overlay_mode: EnumProperty(name="Overlay", items=OVERLAY_MODES, default="ADD",
-                               update=_changed, description="What the viewport overlay shows")
+                               update=_changed, description="What the viewport shows of the GI")
     overlay_exposure: FloatProperty(
         name="Overlay Exposure", default=0.0, soft_min=-8.0, soft_max=8.0,
-        description="Overlay brightness in stops (display only, not the GI itself)",
+        description="Brightness of the viewport's GI in stops (display only, not renders)",
     )
     # Batch and comparison
     batch_directory: StringProperty(
         name="Output", subtype="DIR_PATH", default="", options=PATH_OPTIONS,
-        description="Folder for batch-rendered EXR frames and stats.json (empty: the scene's "
-                    "render output path)",
+        description="Folder for rendered EXR frames (empty: the scene's render output path)",
     )
     compare_resolution: IntProperty(
         name="Compare Resolution", default=64, min=8, max=1024,
-        description="Width of the Cycles comparison render (height follows the aspect)",
+        description="Width of the Cycles comparison render (height follows the camera)",
     )
     compare_samples: IntProperty(name="Compare Samples", default=64, min=1, max=65536,
-                                 description="Cycles samples for the comparison render")
+                                 description="Cycles samples per pixel for the comparison")
     compare_summary: StringProperty(name="Last Comparison", default="",
-                                    description="Result of the last Cycles comparison")
+                                    description="Result of the last comparison with Cycles")
     # UI list state
-    active_light_index: IntProperty(name="Active Light", default=0, min=0)
-    active_area_index: IntProperty(name="Active Area", default=0, min=0)
+    active_light_index: IntProperty(name="Active Light", default=0, min=0,
+                                    description="The light selected in the Lights list")
+    active_area_index: IntProperty(name="Active Area", default=0, min=0,
+                                   description="The area selected in the Areas list")
 
 
 class LPVLightSettings(bpy.types.PropertyGroup):
     """Per-light GI controls."""
 
     gi_intensity: FloatProperty(
-        name="GI Intensity", default=1.0, soft_min=-2.0, soft_max=4.0, min=-100.0, max=100.0,
-        update=_changed,
-        description="Multiplier of this light's bounce (0: no GI; negative: subtracts light)",
+        name="Light GI Intensity", default=1.0, soft_min=-2.0, soft_max=4.0, min=-100.0,
+        max=100.0, update=_changed,
+        description="How much of this light bounces (0: none; negative takes light away)",
     )
     gi_color: FloatVectorProperty(
-        name="GI Color", subtype="COLOR", size=3, default=(1.0, 1.0, 1.0), min=0.0,
+        name="Light GI Color", subtype="COLOR", size=3, default=(1.0, 1.0, 1.0), min=0.0,
         soft_max=1.0, update=_changed, description="Tint of this light's bounced light",
     )
 
@@ -185,23 +194,24 @@ class LPVObjectSettings(bpy.types.PropertyGroup):
     """Per-object GI flags, and GI area settings for Empties."""
 
     gi_caster: BoolProperty(name="Caster", default=True, update=_changed,
-                            description="Bounces light into GI (off: still casts shadows)")
+                            description="Bounces light onto other surfaces (off: still shadows)")
     gi_occluder: BoolProperty(name="Occluder", default=True, update=_changed,
-                              description="Blocks light propagation (with occlusion on)")
+                              description="Blocks bounced light (when Occlusion is on)")
     gi_receiver: BoolProperty(name="Receiver", default=True, update=_changed,
-                              description="Receives indirect light")
+                              description="Receives bounced light")
     area_type: EnumProperty(name="GI Area", items=AREA_TYPES, default="NONE", update=_changed,
-                            description="Use this Empty's box as a GI area")
+                            description="Use this Empty's cube as a GI area")
     area_falloff: FloatProperty(
-        name="Falloff", default=0.5, min=0.0, soft_max=10.0, subtype="DISTANCE", unit="LENGTH",
-        update=_changed, description="Distance over which a transition area blends out",
+        name="Area Falloff", default=0.5, min=0.0, soft_max=10.0, subtype="DISTANCE",
+        unit="LENGTH", update=_changed,
+        description="Distance over which a transition area blends into its surroundings",
     )
-    area_intensity: FloatProperty(name="Intensity", default=1.0, min=0.0, soft_max=4.0,
+    area_intensity: FloatProperty(name="Area Intensity", default=1.0, min=0.0, soft_max=4.0,
                                   update=_changed,
-                                  description="GI multiplier inside a transition area")
+                                  description="Brightness of bounced light inside this area")
     area_tint: FloatVectorProperty(
-        name="Tint", subtype="COLOR", size=3, default=(1.0, 1.0, 1.0), min=0.0, soft_max=1.0,
-        update=_changed, description="GI tint inside a transition area",
+        name="Area Tint", subtype="COLOR", size=3, default=(1.0, 1.0, 1.0), min=0.0,
+        soft_max=1.0, update=_changed, description="Tint of bounced light inside this area",
     )
 
 
@@ -210,15 +220,15 @@ class LPVMaterialSettings(bpy.types.PropertyGroup):
 
     use_bleed_color: BoolProperty(
         name="Use Bleed Color", default=False, update=_changed,
-        description="Bounce this colour into GI instead of the material's albedo",
+        description="Bounce the Bleed Color instead of the material's own (its look unchanged)",
     )
     bleed_color: FloatVectorProperty(
         name="Bleed Color", subtype="COLOR", size=3, default=(0.8, 0.8, 0.8), min=0.0,
-        soft_max=1.0, update=_changed, description="Colour this material bounces into GI",
+        soft_max=1.0, update=_changed, description="Colour this material bounces onto others",
     )
     bleed_intensity: FloatProperty(
         name="Bleed Intensity", default=1.0, min=0.0, soft_max=4.0, update=_changed,
-        description="Strength of this material's bounce (multiplies albedo or bleed colour)",
+        description="How much light this material bounces (scales its colour or Bleed Color)",
     )
 
 
@@ -235,7 +245,7 @@ def register() -> None:
     for cls in CLASSES:
         bpy.utils.register_class(cls)
     for owner, cls in POINTERS:
-        owner.lpv = PointerProperty(type=cls)
+        owner.lpv = PointerProperty(type=cls, name="LPV GI", description=cls.__doc__)
 
 
 def unregister() -> None:

@@ -34,6 +34,7 @@ def box():
     live.shutdown()
     scenes.cornell_box("SPOT", resolution=(32, 24))
     scene = bpy.context.scene
+    scene.lpv.enabled = True  # LPV GI is off in a file until the user turns it on
     scene.lpv.quality = "DRAFT"
     scene.lpv.rsm_resolution = 64
     return scene

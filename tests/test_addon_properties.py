@@ -4,6 +4,8 @@
 from __future__ import annotations
 
 import math
+import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -19,7 +21,7 @@ pytestmark = pytest.mark.bpy
 
 # Every property of ours with a non-default value to set.
 SCENE_VALUES = {
-    "enabled": False, "intensity": 2.5, "quality": "HIGH", "grid_resolution": 24,
+    "enabled": True, "intensity": 2.5, "quality": "HIGH", "grid_resolution": 24,
     "cascades": 2, "cascades_auto": False, "rsm_resolution": 128, "occlusion": True, "bounces": 2,
     "backend": "gl", "antialias": 3, "live_update": False, "refresh_interval": 0.5, "fade_time": 1.25,
     "show_overlay": False, "overlay_mode": "PROBES", "overlay_exposure": -1.5,
@@ -267,3 +269,83 @@ def test_every_panel_draws_existing_properties(box):
                    "[ Render Batch ]", "[ Compare with Cycles ]", "[ Update LPV ]",
                    "| Spot", "| LPV Clip Area"):
         assert needle in text, needle
+
+
+# --------------------------------------------------------------------------------------------
+# Artist-facing polish (issue 20.5): tooltips, names, ranges, off by default
+# --------------------------------------------------------------------------------------------
+
+GROUPS = (properties.LPVSceneSettings, properties.LPVLightSettings,
+          properties.LPVObjectSettings, properties.LPVMaterialSettings)
+INTERNAL = re.compile(r"numpy|moderngl|lpv_core|GISettings|Engine|LPVResult|\w+_\w+|"
+                      r"\b[a-z]+[A-Z]\w*|[A-Z][a-z]+[A-Z]\w*")  # code names, snake/camel case
+
+
+def _ours(cls):
+    return [p for p in cls.bl_rna.properties if p.identifier not in ("rna_type", "name")]
+
+
+def _tooltips():
+    """(where, text) of every tooltip: our properties, their enum items, our operators."""
+    from lpv_addon import operators
+
+    out = []
+    for cls in GROUPS:
+        for p in _ours(cls):
+            out.append((f"{cls.__name__}.{p.identifier}", p.description))
+            if p.type == "ENUM":
+                out += [(f"{cls.__name__}.{p.identifier}:{i.identifier}", i.description)
+                        for i in p.enum_items]
+    for op in operators.CLASSES:  # the tooltip Blender shows (from the class docstring)
+        group, name = op.bl_idname.split(".")
+        out.append((op.bl_idname, getattr(getattr(bpy.ops, group), name).get_rna_type()
+                    .description))
+    return out
+
+
+def test_every_property_and_operator_has_a_one_line_tooltip_in_artist_language():
+    tips = _tooltips()
+    assert len(tips) > 50
+    for where, text in tips:
+        assert text and text == text.strip() and "\n" not in text and "  " not in text, where
+        assert len(text) <= 100, (where, len(text))
+        assert not INTERNAL.search(text), (where, INTERNAL.search(text).group())
+
+
+def test_no_two_of_our_settings_share_a_name():
+    names = [p.name for cls in GROUPS for p in _ours(cls)]
+    assert len(names) == len(set(names)), sorted(n for n in names if names.count(n) > 1)
+    assert "Intensity" not in names
+
+
+def test_preset_tooltips_quote_only_figures_the_report_measured():
+    report = (Path(__file__).resolve().parents[1] / "docs/report/README.md").read_text()
+    for name, (_, tip, _) in properties.PRESETS.items():
+        for figure in re.findall(r"\d+\.\d+", tip):
+            assert re.search(rf"(?<![\d.]){re.escape(figure)}(?![\d])", report), (name, figure)
+
+
+def test_ui_ranges_are_the_core_setting_ranges():
+    """What the UI offers runs: each GI setting's property has the core's range (the largest
+    grid is the largest the memory guard admits), each choice is a known one."""
+    from lpv_core.scene import model
+
+    rna = properties.LPVSceneSettings.bl_rna.properties
+    checked = 0
+    for key in model.SETTING_RANGES:
+        if key not in rna:
+            continue
+        allowed, p = model.setting_range(key), rna[key]
+        if p.type == "ENUM":
+            assert {i.identifier for i in p.enum_items} == set(allowed), key
+        elif allowed is not None:
+            assert (p.hard_min, p.hard_max) == pytest.approx(allowed), key
+        checked += 1
+    assert checked >= 8
+    assert rna["grid_resolution"].hard_max == model.max_grid_resolution()
+
+
+def test_lpv_gi_is_off_in_a_new_file(box):
+    bpy.ops.wm.read_homefile(use_empty=True)
+    assert bpy.context.scene.lpv.enabled is False
+    assert bpy.data.scenes.new("Another").lpv.enabled is False
