@@ -175,7 +175,10 @@ class LPV_PT_output(_Sidebar, bpy.types.Panel):
         props = _props(context)
         layout = self.layout
         layout.prop(props, "batch_directory")
-        layout.operator("lpv.render_batch", icon="RENDER_ANIMATION")
+        row = layout.row(align=True)
+        row.operator("lpv.render_batch", icon="RENDER_STILL")
+        row.operator("lpv.render_batch", text="Animation",
+                     icon="RENDER_ANIMATION").frames = "ANIMATION"
         row = layout.row(align=True)
         row.prop(props, "compare_resolution", text="Size")
         row.prop(props, "compare_samples", text="Samples")
