@@ -67,6 +67,26 @@ def test_indirect_light_is_linear_in_power_from_1e_30_to_1e30_watts(compiled):
 
 
 
+
+def test_rendered_passes_are_linear_in_power_for_a_sun():
+    # Direct and indirect passes of a sunlit yard at 1e-30 and 1e30 times its irradiance: no
+    # float32 overflow or underflow in the RSM flux, injection, direct light or the render.
+    base = demo.outdoor((32, 24), GISettings(grid_resolution=12, rsm_resolution=48,
+                                             shadow_resolution=128, antialias=1,
+                                             backend="numpy"))
+    eng = engine.Engine()
+
+    def passes(k):
+        sc = _scaled(base, 10.0**k)
+        out = deferred.render(eng, sc, eng.update(sc))
+        return {n: out[n] / np.float32(10.0**k) for n in ("Diffuse Direct", "Diffuse Indirect")}
+
+    ref = passes(0)
+    for k in (-30, 30):
+        for name, image in passes(k).items():
+            assert np.all(np.isfinite(image)), (k, name)
+            assert np.abs(image - ref[name]).max() <= 1e-5 * ref[name].max(), (k, name)
+
 # --------------------------------------------------------------------------------------------
 # Settings validated (issue 19.4)
 # --------------------------------------------------------------------------------------------
