@@ -4,6 +4,10 @@ Blender's process never runs moderngl (it breaks Blender's drawing): the live
 viewport, the Render Batch operator and the Cycles comparison send scenes as .npz files to one
 child process (``python -m lpv_core.worker``, see that module for the protocol) and read the
 results back as arrays.
+
+Compiled CPU kernels are cached in the extension's user folder (``kernel_cache``), which
+Blender keeps across extension updates and reinstalls; the worker serves with the numpy
+reference while a cold cache fills (lpv_core/runtime/warmup.py).
 """
 
 from __future__ import annotations
@@ -11,6 +15,7 @@ from __future__ import annotations
 import importlib
 import json
 import os
+import platform
 import queue
 import shutil
 import subprocess
@@ -25,6 +30,29 @@ from ._core import core
 protocol = importlib.import_module(core.__name__ + ".worker")  # scene <-> npz
 PACKAGE_PARENT = str(Path(core.__file__).resolve().parents[1])
 WORKER_MODULE = "lpv_core.worker"
+
+
+def kernel_cache() -> str | None:
+    """Where the worker's numba keeps compiled kernels: ``$LPV_GI_CACHE_DIR`` or the extension's
+    user folder (bpy.utils.extension_path_user), in a folder per extension, numba and Python
+    version and CPU; None when the add-on runs from a source tree (numba's default place)."""
+    ext = (__package__ or "").rpartition(".lpv_addon")[0]  # "bl_ext.<repo>.<id>" when installed
+    if not ext.startswith("bl_ext."):
+        return None
+    import importlib.metadata
+    import tomllib
+
+    import bpy
+
+    try:
+        root = os.environ.get("LPV_GI_CACHE_DIR") or bpy.utils.extension_path_user(
+            ext, path="cache", create=True)
+        version = tomllib.loads(Path(PACKAGE_PARENT, "blender_manifest.toml").read_text())
+        numba = importlib.metadata.version("numba")
+    except (OSError, ValueError, KeyError, importlib.metadata.PackageNotFoundError):
+        return None
+    key = f"{version.get('version')}-numba{numba}-py{sys.version_info[0]}{sys.version_info[1]}"
+    return os.path.join(root, "kernels", f"{key}-{platform.machine()}")
 
 
 class WorkerError(RuntimeError):
@@ -42,6 +70,10 @@ class WorkerClient:
         paths = [PACKAGE_PARENT] + [p for p in sys.path if p and os.path.isdir(p)]
         env["PYTHONPATH"] = os.pathsep.join(dict.fromkeys(paths))
         env.setdefault("PYTHONNOUSERSITE", "1")
+        cache = env.get("NUMBA_CACHE_DIR") or kernel_cache()
+        if cache:  # set before the worker imports numba
+            env["NUMBA_CACHE_DIR"] = cache
+            env.setdefault("LPV_GI_CACHE_DIR", str(Path(cache).parents[1]))  # auto's choice
         flags = getattr(subprocess, "CREATE_NO_WINDOW", 0) if os.name == "nt" else 0
         self.proc = subprocess.Popen(
             [python or sys.executable, "-m", WORKER_MODULE],
@@ -59,7 +91,8 @@ class WorkerClient:
         for line in self.proc.stdout:
             try:
                 reply = json.loads(line)
-            except json.JSONDecodeError:
+                hash(reply.get("id"))
+            except (ValueError, AttributeError, TypeError):  # not a reply of ours
                 continue
             with self._lock:
                 self._replies[reply.get("id")] = reply

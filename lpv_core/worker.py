@@ -15,9 +15,13 @@ go to stderr). Bulk arrays travel as .npz files in a folder the client owns:
            the occluders' cell gaps (geometry_volume.cell_gaps, lookup.gap_corrected) if any
     {"id": 2, "cmd": "render", "scene": "in.npz", "exr": "f.exr", "passes": "p.npz"}
         -> deferred render of the scene's camera: EXR (atomic) and/or passes npz
-    {"id": 3, "cmd": "quit"}
-Errors reply {"id": n, "ok": false, "error": "one line"}; the worker keeps serving. It exits on
-"quit" or when stdin closes (the parent went away).
+    {"id": 3, "cmd": "ping"} -> {"id": 3, "ok": true, "pid": ...}
+    {"id": 4, "cmd": "quit"}
+Every reply carries "kernels" (runtime/warmup.py: "state" off, waiting, compiling, ready or
+failed; "compiled" of "of" kernels; "seconds"): on a cold kernel cache the numpy reference
+serves while a child compiles. Errors, a line that is not a JSON object or an unknown command
+included, reply {"id": n, "ok": false, "error": "one line"}; the worker keeps serving. It exits
+on "quit" or when stdin closes (the parent went away).
 """
 
 from __future__ import annotations
@@ -30,7 +34,8 @@ import traceback
 
 import numpy as np
 
-from .scene.model import Area, Camera, GISettings, Light, Material, Scene
+from .runtime import warmup
+from .scene.model import LIGHT_TYPES, Area, Camera, GISettings, Light, Material, Scene
 
 # ------------------------------------------------------------------------ scene <-> npz
 
@@ -163,6 +168,7 @@ class Server:
     def __init__(self):
         from .engine import Engine
 
+        self.warm = warmup.Warmup()  # before the engine's first stage: kernels off if cold
         self.engine = Engine()
 
     def handle(self, req: dict) -> dict:
@@ -170,12 +176,16 @@ class Server:
         from .render import deferred, exr
 
         cmd = req.get("cmd")
+        self.warm.poll()  # the compiled kernels take over between requests
         if cmd == "ping":
             return {"pid": os.getpid()}
+        if cmd not in ("update", "render"):
+            raise ValueError(f"unknown command {cmd!r} (update, render, ping, quit)")
         scene = load_scene(req["scene"])
         stats = Stats()
         # Interactive updates may shift cascades for a camera move and refresh afterwards.
         result = self.engine.update(scene, stats, reproject=cmd == "update")
+        self.warm.start(req["scene"], scene)  # after this scene's result: the CPU is ours first
         if cmd == "update":
             save_result(req["reply"], result, scene)
             return {"stats": stats.as_dict(), "has_gi": result.values is not None,
@@ -188,40 +198,95 @@ class Server:
                 tmp = req["passes"] + ".tmp.npz"
                 np.savez(tmp, **{k.replace(" ", "_"): v for k, v in passes.items()})
                 os.replace(tmp, req["passes"])
-            return {"stats": stats.as_dict(), "has_gi": result.values is not None}
-        raise ValueError(f"unknown command {cmd!r}")
+        return {"stats": stats.as_dict(), "has_gi": result.values is not None}
+
+
+def warm_up(path: str) -> int:
+    """The warm-up child (runtime/warmup.py): the engine once on the worker's first scene, with
+    every light type and a camera, so that the kernels a later scene needs are compiled too."""
+    import dataclasses
+    import threading
+    import time
+
+    from .engine import Engine, Stats
+    from .render import deferred
+
+    proto = os.fdopen(os.dup(sys.stdout.fileno()), "w", buffering=1, encoding="utf-8")
+    sys.stdout = sys.stderr
+    if hasattr(os, "nice"):
+        os.nice(10)  # the worker's numpy reference first
+    # The worker went away (its pipe closed): stop compiling for nobody.
+    threading.Thread(target=lambda: (sys.stdin.read(), os._exit(3)), daemon=True).start()
+
+    def report():
+        while True:
+            proto.write(json.dumps({"compiled": warmup.compiled()}) + "\n")
+            time.sleep(0.5)
+
+    threading.Thread(target=report, daemon=True).start()
+    t0 = time.monotonic()
+    try:
+        scene = load_scene(path)
+        os.unlink(path)
+        scene.lights += [dataclasses.replace(scene.lights[0], name=f"warm-up {t}", type=t)
+                         for t in LIGHT_TYPES if t not in {li.type for li in scene.lights}]
+        points = scene.positions.reshape(-1, 3)
+        lo, hi = points.min(0), points.max(0)
+        scene.camera = Camera.look_at(hi + (hi - lo), (lo + hi) / 2, resolution=(16, 16))
+        engine = Engine()
+        deferred.render(engine, scene, engine.update(scene, Stats()), Stats())
+    except Exception as exc:  # noqa: BLE001 - the worker reports it and stays on numpy
+        traceback.print_exc(file=sys.stderr)
+        proto.write(json.dumps({"error": f"{type(exc).__name__}: {exc}"[:300]}) + "\n")
+        return 1
+    warmup.mark_ready(round(time.monotonic() - t0, 1))
+    proto.write(json.dumps({"compiled": warmup.compiled()}) + "\n")
+    return 0
+
+
+def _request(line: str) -> dict:
+    """One request line as a JSON object, else ValueError or TypeError saying why not."""
+    try:
+        req = json.loads(line)
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"bad request: not JSON ({exc})") from None
+    if not isinstance(req, dict):
+        raise TypeError(f"bad request: a JSON object per line, not {type(req).__name__}")
+    return req
 
 
 def main() -> int:
+    if sys.argv[1:2] == ["--warm-up"]:
+        return warm_up(sys.argv[2])
     # Replies go to the real stdout; anything a library prints goes to stderr.
     proto = os.fdopen(os.dup(sys.stdout.fileno()), "w", buffering=1, encoding="utf-8")
     sys.stdout = sys.stderr
     server = None
     for line in sys.stdin:
-        line = line.strip()
-        if not line:
+        if not line.strip():
             continue
+        rid = None
         try:
-            req = json.loads(line)
-        except json.JSONDecodeError as exc:
-            proto.write(json.dumps({"id": None, "ok": False, "error": f"bad request: {exc}"}))
-            proto.write("\n")
-            continue
-        if req.get("cmd") == "quit":
-            proto.write(json.dumps({"id": req.get("id"), "ok": True}) + "\n")
-            break
-        try:
+            req = _request(line)
+            rid = req.get("id") if isinstance(req.get("id"), (int, str)) else None
+            if req.get("cmd") == "quit":
+                proto.write(json.dumps({"id": rid, "ok": True}) + "\n")
+                break
             if server is None:
                 server = Server()
-            reply = {"id": req.get("id"), "ok": True, **server.handle(req)}
+            reply = {"id": rid, "ok": True, **server.handle(req)}
         except Exception as exc:  # noqa: BLE001 - every failure becomes a one-line reply
             traceback.print_exc(file=sys.stderr)
             msg = str(exc).strip().splitlines()
-            reply = {"id": req.get("id"), "ok": False,
+            reply = {"id": rid, "ok": False,
                      "error": f"{type(exc).__name__}: {msg[-1] if msg else ''}"}
+        if server is not None:
+            reply["kernels"] = server.warm.status()
         proto.write(json.dumps(reply) + "\n")
-    if server is not None and server.engine._raster is not None:
-        server.engine._raster.release()
+    if server is not None:
+        server.warm.stop()
+        if server.engine._raster is not None:
+            server.engine._raster.release()
     return 0
 
 

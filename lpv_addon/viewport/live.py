@@ -11,7 +11,11 @@ Planning (what is recomputed, what is skipped and why):
   in flight nothing new is sent (the newest state goes next); when only art-direction values
   changed (light GI intensity/tint, global intensity) the cached per-light grids are
   re-combined here in numpy (propagation is linear), no RSM, injection or propagation;
-- a new result fades in over ``Scene.lpv.fade_time`` (the overlay blends old and new).
+- a new result fades in over ``Scene.lpv.fade_time`` (the overlay blends old and new);
+- a worker that stopped, or has not answered within :func:`deadline`, is said so in the stats
+  lines, replaced by a new one and sent the scene again (MAX_RESTARTS in a row at most);
+- while the worker's CPU kernels compile (its numpy reference serves meanwhile) pings follow the
+  progress, shown in the stats lines and Blender's status bar.
 No bpy object is stored: results hold arrays and names only (undo and file loads are safe).
 """
 
@@ -32,6 +36,10 @@ from ..scene_io.extract import extract_scene
 from ..worker_client import WorkerClient, WorkerError
 
 MAX_REASONS = 12
+# A reply later than this (x the grid's cells / 64^3, numpy's reference takes 24 s at 64^3 on
+# two cores) means the worker is stuck: the kernels compile in another process, never here.
+DEADLINE_S = 120.0
+MAX_RESTARTS = 3
 
 
 # --------------------------------------------------------------------------- live state
@@ -75,6 +83,10 @@ class LiveState:
         self.updates = 0
         self.paused = False  # a batch render owns the frame: no live updates meanwhile
         self.requests = 0
+        self.kernels: dict = {}  # the worker's last kernel status (lpv_core.runtime.warmup)
+        self.ping = None  # request id of a kernel status ping in flight
+        self.restarts = 0  # worker restarts since the last accepted result
+        self.status = None  # our text in Blender's status bar (None: Blender's own)
 
 
 STATE = LiveState()
@@ -107,6 +119,27 @@ def shutdown() -> None:
     STATE.dirty = True
     STATE.reasons = ["reset"]
     STATE.error = ""
+    STATE.kernels, STATE.ping, STATE.restarts = {}, None, 0
+    status_bar(None)
+
+
+def deadline(settings) -> float:
+    """Seconds a reply may take before the worker counts as stuck (DEADLINE_S)."""
+    return DEADLINE_S * max(1.0, (int(getattr(settings, "grid_resolution", 16)) / 64) ** 3)
+
+
+def restart(reason: str) -> None:
+    """The worker stopped or hangs: say so in the UI, stop it, and (MAX_RESTARTS in a row at
+    most) let the next tick send the scene to a new one."""
+    if STATE.client is not None:
+        STATE.client.kill()
+    STATE.client, STATE.pending, STATE.ping = None, None, None
+    STATE.restarts += 1
+    again = STATE.restarts <= MAX_RESTARTS
+    STATE.error = reason + ("; restarted it" if again else
+                            f"; gave up after {MAX_RESTARTS} restarts: Update to retry")
+    if again:
+        mark_dirty("worker restarted")
 
 
 # ------------------------------------------------------------------------------ planning
@@ -205,6 +238,7 @@ def _accept(result: LiveResult) -> None:
     STATE.current = result
     STATE.updates += 1
     STATE.error = ""
+    STATE.restarts = 0
 
 
 def _read_reply(reply: dict, scene, key: str, reasons: list[str], t_sent: float,
@@ -271,9 +305,16 @@ def refresh(scene: bpy.types.Scene, depsgraph=None, wait: bool = False,
     rid, _ = worker.send_scene("update", core_scene, name, reply=reply_path)
     STATE.pending = (rid, key, core_scene, time.perf_counter(), reasons, reply_path, t_extract)
     STATE.last_sent = time.monotonic()
-    if wait:
-        return poll(worker.wait(rid, timeout))
-    return False
+    return _wait(rid, timeout) if wait else False
+
+
+def _wait(rid: int, timeout: float) -> bool:
+    try:
+        reply = STATE.client.wait(rid, timeout)
+    except WorkerError as exc:
+        restart(str(exc))
+        raise
+    return poll(reply)
 
 
 def poll(reply: dict | None = None) -> bool:
@@ -285,12 +326,15 @@ def poll(reply: dict | None = None) -> bool:
     try:
         reply = reply or STATE.client.reply(rid)
     except WorkerError as exc:
-        STATE.pending = None
-        STATE.error = str(exc)
+        restart(f"the LPV worker stopped ({exc})")
         return False
     if reply is None:
+        late = time.perf_counter() - t_sent
+        if late > deadline(core_scene.settings):
+            restart(f"the LPV worker did not answer within {late:.0f} s")
         return False
     STATE.pending = None
+    STATE.kernels = reply.get("kernels", STATE.kernels)
     try:
         result = _read_reply(reply, core_scene, key, reasons, t_sent, reply_path, t_extract)
     except (WorkerError, OSError, KeyError, ValueError) as exc:
@@ -312,7 +356,46 @@ def wait_pending(timeout: float = 300.0) -> bool:
     """Block until the request in flight is answered and accept its result."""
     if STATE.pending is None or STATE.client is None:
         return False
-    return poll(STATE.client.wait(STATE.pending[0], timeout))
+    return _wait(STATE.pending[0], timeout)
+
+
+def _follow_kernels() -> bool:
+    """While the worker's kernels compile, ping it about once a second for their progress.
+    True when new progress arrived."""
+    if STATE.client is None or STATE.kernels.get("state") != "compiling":
+        return False
+    try:
+        if STATE.ping is None and STATE.pending is None:
+            STATE.ping = STATE.client.send("ping")
+            return False
+        reply = STATE.client.reply(STATE.ping) if STATE.ping is not None else None
+    except WorkerError:  # gone: the next refresh starts a new one
+        STATE.ping = None
+        return False
+    if reply is not None:
+        STATE.kernels, STATE.ping = reply.get("kernels", {}), None
+    return reply is not None
+
+
+def kernel_text() -> str | None:
+    """One line on the worker's compiled kernels while they are not running, else None."""
+    k = STATE.kernels
+    if k.get("state") == "compiling":
+        return (f"LPV GI: compiling CPU kernels ({k['compiled']} of {k['of']}, "
+                f"{k['seconds']:.0f} s); the numpy reference serves meanwhile")
+    if k.get("state") == "failed":
+        return f"LPV GI: CPU kernels failed ({k.get('error')}); the numpy reference serves"
+    return None
+
+
+def status_bar(text: str | None) -> None:
+    """Show ``text`` in Blender's status bar (None: give it back to Blender)."""
+    if text == STATE.status:
+        return
+    for win, _area in _window_viewports():
+        with contextlib.suppress(AttributeError, RuntimeError, ReferenceError):
+            win.workspace.status_text_set(text)
+    STATE.status = text
 
 
 def fade(props=None, now: float | None = None) -> float:
@@ -368,8 +451,12 @@ def tick(require_viewport: bool = True) -> float:
         return 1.0
     interval = float(props.refresh_interval)
     if not props.enabled or STATE.paused:
+        status_bar(None)
         return max(interval, 0.5)
     got = poll()
+    if _follow_kernels():
+        tag_redraw()
+    status_bar(kernel_text())
     if (props.live_update and STATE.dirty and STATE.pending is None
             and time.monotonic() - STATE.last_sent >= interval * 0.999):
         try:
@@ -378,16 +465,18 @@ def tick(require_viewport: bool = True) -> float:
                 else contextlib.nullcontext()
             with ctx:
                 got = refresh(scene) or got
-        except (WorkerError, ValueError, OSError) as exc:
+        except WorkerError as exc:
+            restart(str(exc))
+        except (ValueError, OSError) as exc:
             STATE.error = str(exc)
     if got:
         tag_redraw()
     if STATE.current is not None and fade(props) < 1.0:
         tag_redraw()
         return min(1.0 / 30.0, interval)
-    if STATE.pending is not None:
+    if STATE.pending is not None or STATE.ping is not None:
         return min(0.05, interval)
-    return interval
+    return min(1.0, interval) if STATE.status else interval
 
 
 def stats_lines(result: LiveResult | None = None) -> list[str]:
@@ -396,6 +485,8 @@ def stats_lines(result: LiveResult | None = None) -> list[str]:
     lines = []
     if STATE.error:
         lines.append(f"error: {STATE.error}")
+    if kernel_text():
+        lines.append(kernel_text().removeprefix("LPV GI: "))
     if result is None:
         lines.append("no LPV yet" + (" (updating...)" if STATE.pending else ""))
         return lines

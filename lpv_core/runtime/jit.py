@@ -5,8 +5,10 @@ a Blender without it). A stage with a kernel calls it when ``enabled()``; tests 
 the same input and compare. Kernels are compiled single-threaded with the GIL released
 (``nogil``), so a stage splits its work over ordinates' thread pool where that pays and the
 live viewport's worker thread never meets a numba threading layer. Compiled code is cached on
-disk (numba's cache: ``__pycache__`` beside the module, or NUMBA_CACHE_DIR), so only the first
-run on a machine pays the compile. Numba checks only the kernel's own file for changes: a
+disk (numba's cache: NUMBA_CACHE_DIR, which the add-on's worker gets in the user's cache folder,
+else ``__pycache__`` beside the module), so only the first run on a machine pays the compile,
+and the worker serves that run with the numpy reference meanwhile (warmup.py). Numba checks
+only the kernel's own file (its content hash) for changes: a
 kernel calling one from another module (sweep's fused kernel calls ordinates' launch) keeps
 its cached copy of the callee until its own file changes; an installed release replaces every
 file, and during development ``find . -name '*.nbi' -delete`` clears the cache.
@@ -31,7 +33,8 @@ try:  # optional: the numpy code runs without it
 except Exception:  # noqa: BLE001 - any import failure (missing, or a broken llvmlite) = no JIT
     numba = None
 
-_STATE = {"on": numba is not None and os.environ.get("LPV_JIT", "1") != "0"}
+_STATE = {"on": numba is not None and os.environ.get("LPV_JIT", "1") != "0", "warming": False}
+KERNELS: list = []  # every compiled kernel (the warm-up counts those compiled)
 
 
 def enabled() -> bool:
@@ -42,6 +45,16 @@ def enabled() -> bool:
 def name() -> str:
     """What the CPU stages run on, for stats: "numba <version>" or "numpy"."""
     return f"numba {numba.__version__}" if enabled() else "numpy"
+
+
+def warming() -> bool:
+    """True while the kernels compile in another process and the numpy reference serves."""
+    return _STATE["warming"]
+
+
+def switch(on: bool, warming: bool = False) -> None:
+    """Turn this process's kernels on or off (the worker's first run: warmup.py)."""
+    _STATE["on"], _STATE["warming"] = on and numba is not None, warming
 
 
 @contextlib.contextmanager
@@ -60,7 +73,8 @@ def kernel(fn: Callable) -> Callable:
     without numba ``fn`` is returned as it is and never called (``enabled()`` is False)."""
     if numba is None:
         return fn
-    return numba.njit(cache=True, nogil=True, error_model="numpy")(fn)
+    KERNELS.append(numba.njit(cache=True, nogil=True, error_model="numpy")(fn))
+    return KERNELS[-1]
 
 
 X86 = platform.machine().lower() in {"x86_64", "amd64", "i386", "i686", "x86"}
