@@ -556,9 +556,9 @@ def case_grids(r: Runner) -> dict:
     left out of the figure and named in its note."""
     runs, refused = {}, []
     for g in r.p["grids"]:
-        settings = r.settings(grid_resolution=g)
         try:
             transport_sweep.check_memory(g)
+            settings = r.settings(grid_resolution=g)  # refuses what the guard refuses
         except ValueError as exc:
             refused.append(f"{g}^3 refused: {exc}")
             continue
