@@ -159,10 +159,16 @@ class Engine:
         machine and kept on disk). stats.info["backend_auto"] says what auto chose and why.
         Each has inject, propagate, irradiance and discard.
         The CPU stages run numba-compiled kernels where numba is installed (jit.py): the
-        stats' "cpu_kernels" says which."""
+        stats' "cpu_kernels" says which. While they compile (jit.warming) auto takes the CPU
+        untimed: GL is timed against the compiled kernels, by the warm-up run."""
         name = getattr(settings, "backend", "numpy")
         if stats is not None:
             stats.info["cpu_kernels"] = jit.name()
+        if name == "auto" and jit.warming():
+            if stats is not None:
+                stats.info["backend_auto"] = {"backend": "numpy", "reason": "kernels compiling"}
+                stats.info["backend"] = NUMPY_BACKEND.name
+            return NUMPY_BACKEND
         if name == "auto":
             from .gl import backend as gl_backend
 
