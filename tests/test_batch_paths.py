@@ -123,3 +123,36 @@ def test_render_batch_renders_the_current_frame_unless_told_the_animation(addon,
                                     frame_start=2, frame_end=3) == {"FINISHED"}
     assert sorted(p.name for p in (tmp_path / "range").glob("*.exr")) == ["0002.exr",
                                                                           "0003.exr"]
+
+
+FULL_SCRIPT = r"""
+import json, resource, signal, sys
+from pathlib import Path
+from lpv_addon.render.frames import StatsFile
+path = Path(sys.argv[1])
+stats = StatsFile(path, {"scene": "S", "settings": None})
+stats.add({"frame": 1})
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # past the limit write(2) is cut short
+resource.setrlimit(resource.RLIMIT_FSIZE, (path.stat().st_size + 100, resource.RLIM_INFINITY))
+try:
+    stats.add({"frame": 2, "pad": "x" * 1000})
+except OSError as exc:
+    print("ERROR", exc.filename)
+print("FRAMES", [f["frame"] for f in json.loads(path.read_text())["frames"]])
+"""
+
+
+@pytest.mark.skipif(os.name != "posix", reason="RLIMIT_FSIZE is POSIX")
+def test_a_record_cut_short_by_a_full_disk_leaves_stats_json_valid(tmp_path):
+    """A write cut short (the file-size limit, as a full disk does) is undone: the file keeps
+    the frames it had, and the error names it."""
+    import subprocess
+    import sys
+
+    from conftest import ROOT
+
+    path = tmp_path / "stats.json"
+    proc = subprocess.run([sys.executable, "-c", FULL_SCRIPT, str(path)], cwd=ROOT,
+                          capture_output=True, text=True, check=False, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert f"ERROR {path}" in proc.stdout and "FRAMES [1]" in proc.stdout, proc.stdout
