@@ -39,14 +39,17 @@ def _scaled(scene, factor: float):
                                               for li in scene.lights])
 
 
-@pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "numpy"])
-def test_indirect_light_is_linear_in_power_from_1e_30_to_1e30_watts(compiled):
+@pytest.mark.parametrize("compiled, backend", [(True, "numpy"), (False, "numpy"),
+                                               (True, "gl")], ids=["compiled", "numpy", "gl"])
+def test_indirect_light_is_linear_in_power_from_1e_30_to_1e30_watts(compiled, backend, request):
     # The transport is linear: indirect light / power is the same number at any power, up to
     # float32 rounding (1e-5 relative), whether the flux is 1e-30 W or 1e30 W.
     if compiled and not jit.enabled():
         pytest.skip("numba is not installed")
+    if backend == "gl":
+        request.getfixturevalue("gl")  # skips without a GL 4.3 compute context
     base = demo.cornell_box("POINT", settings=GISettings(grid_resolution=12, rsm_resolution=48,
-                                                         backend="numpy"))
+                                                         backend=backend))
     p, n = _floor_points()
     eng = engine.Engine()
 
