@@ -97,11 +97,11 @@ class Camera:
 @dataclass
 class GISettings:
     """Quality and artist settings for one LPV update. Each value must lie in its
-    SETTING_RANGES entry (whole numbers: grid_resolution 4 to max_grid_resolution(), 85 at the
-    4 GB guard; cascades, bounces and antialias 1 to 8; iterations 0 to 1000; rsm_resolution 16
-    to 2048; shadow_resolution 16 to 4096; intensity 0 to 100; angular dom or sh; backend auto,
-    numpy or gl; docs/user-guide.md): construction and ``updated`` raise ValueError naming the
-    setting, the value and the range."""
+    SETTING_RANGES entry (grid_resolution 4 to max_grid_resolution(), 85 at the 4 GB guard;
+    cascades, bounces and antialias 1 to 8; iterations 0 to 1000; rsm_resolution 16 to 2048;
+    shadow_resolution 16 to 4096, all whole numbers; intensity 0.0 to 100.0; angular dom or
+    sh; backend auto, numpy or gl; docs/user-guide.md): construction and ``updated`` raise
+    ValueError naming the setting, the value and the range."""
 
     grid_resolution: int = 16
     cascades: int = 3  # at most this many; with cascades_auto the planner picks per view
