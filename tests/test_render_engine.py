@@ -127,6 +127,15 @@ off.free()
 buf.dimensions = w * h * 4
 res["drawn"] = np.array(buf.to_list(), np.float32).reshape(h, w, 4)[::-1]
 
+# Film > Transparent: alpha 0 where no surface is seen; Workbench's coverage as reference.
+scene.render.film_transparent = True
+scene.render.filepath = os.path.join(tmp, "transparent", "still.exr")
+bpy.ops.render.render(write_still=True)
+scene.render.engine = "BLENDER_WORKBENCH"
+scene.render.filepath = os.path.join(tmp, "workbench", "still.exr")
+bpy.ops.render.render(write_still=True)
+scene.render.engine, scene.render.film_transparent = "LPV_GI", False
+
 # The main panel's warnings: world light and an emissive material are left out.
 scene.world = scene.world or bpy.data.worlds.new("World")
 scene.world.use_nodes = True
@@ -297,6 +306,15 @@ def test_rendered_viewport_image_matches_f12(run):
     assert got[m].sum() / expect[m].sum() == pytest.approx(1.0, rel=0.02)
     # (linear texture filtering at the pixel centres: float rounding)
     np.testing.assert_allclose(shots["drawn"], shots["view_Combined"], rtol=1e-4, atol=1e-5)
+
+
+def test_film_transparent_alpha_follows_coverage(run):
+    tmp, _, _ = run
+    alpha = _exr(tmp / "transparent" / "still.exr")["Combined"][..., 3]
+    cover = _exr(tmp / "workbench" / "still.exr")["Combined"][..., 3]
+    empty, full = cover < 0.01, cover > 0.99  # (Workbench's pixel filter is wider than 1 px)
+    assert empty.sum() > 20 and full.sum() > 0.5 * W * H
+    assert (alpha[empty] == 0).all() and (alpha[full] == 1).all()
 
 
 def test_main_panel_warns_about_left_out_light(run):
