@@ -232,6 +232,20 @@ def test_make_scene_drops_or_defaults_non_finite_lights_materials_and_areas():
         np.testing.assert_array_equal(dataclasses.asdict(li)["color"], was["color"])
 
 
+
+def test_negative_colours_and_strengths_are_raised_to_zero_and_counted():
+    tri = np.array([[[0.0, 0, 0], [1, 0, 0], [0, 1, 0]]])
+    ok = Material("ok")
+    neg = Material("neg", np.float32([-0.5, 0.5, 0.5]), bleed_intensity=-1.0)
+    light = Light("L", "POINT", np.eye(4), color=np.float32([1, -1, 1]))
+    sc = make_scene(tri, materials=[ok, neg], lights=[light, Light("fine", "POINT", np.eye(4))])
+    assert sc.dropped["materials_with_invalid_values_defaulted"] == 1
+    assert sc.dropped["lights_with_invalid_values_defaulted"] == 1
+    assert sc.materials[0] is ok and sc.lights[1].name == "fine"
+    np.testing.assert_array_equal(sc.materials[1].albedo, [0, 0.5, 0.5])
+    assert sc.materials[1].bleed_intensity == 0.0
+    np.testing.assert_array_equal(sc.lights[0].color, [1, 0, 1])
+
 @pytest.fixture(scope="module")
 def hostile():
     """The hostile scene through make_scene, and an engine that has run its update."""
