@@ -197,6 +197,28 @@ def test_quick_report_writes_readme_figures_and_numbers(quick):
     # Monte Carlo: more samples, less error (16x the samples: about 1/4 of the noise).
     assert curve[-1]["indirect"] < curve[0]["indirect"]
     assert data["stability"] and all(f["rows"] for f in data["stability"])
+    # The peers (issue 21): denoised Cycles over its samples, EEVEE with ray tracing on and
+    # off, KD10's SH over grid resolutions; each on Combined, with verdicts per peer.
+    quick_prof = report.PROFILES["quick"]
+    oidn = scene["peers"][report.PEER_OIDN]
+    assert [c["samples"] for c in oidn] == list(quick_prof["denoised_samples"])
+    # The denoiser's error at 1 spp is far below raw Cycles' at 1 spp (same samples).
+    assert oidn[0]["combined"] < curve[0]["combined"]
+    assert all("indirect" not in c for c in oidn)
+    eevee = [p for p in scene["peers"] if p.startswith("EEVEE")]
+    assert sorted(eevee) == ["EEVEE, ray tracing off", "EEVEE, ray tracing on"]
+    for p in eevee:
+        (point,) = scene["peers"][p]
+        assert np.isfinite(point["combined"]) and point["software"] is True  # llvmpipe here
+    kd10 = scene["peers"][report.PEER_KD10]
+    assert sorted(r["settings"]["grid_resolution"] for r in kd10) == list(
+        quick_prof["kd10_grids"])
+    assert all(r["settings"]["angular"] == report.KD10_ANGULAR for r in kd10)
+    assert not any(report._kd10(r) for r in ok if r["label"] in scene["pareto"])
+    peers_seen = {v["peer"] for v in scene["peer_verdicts"]}
+    assert peers_seen == {report.PEER_RAW, report.PEER_OIDN, report.PEER_KD10, *eevee}
+    assert all(v["wins"] in (True, False) for v in scene["peer_verdicts"])
+    assert "## Against the peers a user would pick instead" in readme
     # The one-line verdict per scene goes to stdout.
     assert "cornell_spot:" in proc.stdout and "criterion" in proc.stdout
 

@@ -44,6 +44,7 @@ from pathlib import Path
 import numpy as np
 
 from lpv_core.render.error import indirect_term, relative_rmse
+from tools import peers
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -69,6 +70,9 @@ PROFILES: dict[str, dict] = {
         "sweep": "full",
         "stability": "report",
         "multi": True,
+        "denoised_samples": (1, 2, 4, 8, 16, 32, 64),
+        "eevee_samples": peers.EEVEE_SAMPLES,
+        "kd10_grids": (8, 16, 32, 64),
     },
     "quick": {
         "scenes": ("cornell_spot",),
@@ -87,6 +91,9 @@ PROFILES: dict[str, dict] = {
         "sweep": "quick",
         "stability": "test",
         "multi": False,
+        "denoised_samples": (1, 4, 16),
+        "eevee_samples": 4,
+        "kd10_grids": (8, 16),
     },
     "smoke": {  # the test suite's run: tiny, seconds
         "scenes": ("cornell_spot",),
@@ -105,8 +112,16 @@ PROFILES: dict[str, dict] = {
         "sweep": "smoke",
         "stability": "test",
         "multi": False,
+        "denoised_samples": (1,),
+        "eevee_samples": 0,
+        "kd10_grids": (8,),
     },
 }
+# The peers (tools/peers.py) by the names the tables and figures use.
+PEER_OIDN = "Cycles + OpenImageDenoise"
+PEER_KD10 = "KD10 (angular=sh)"
+PEER_RAW = "Cycles, no denoiser"
+KD10_ANGULAR = "sh"  # KD10's own transport, the seed's system: a peer, not an LPV setting
 
 # Values swept for the GI settings we know; other fields are swept by type (sweep_values).
 KNOWN_VALUES = {
@@ -489,8 +504,9 @@ def _read_exr(path):
 
 
 def cycles_sweep(scene, tag: str, bounces: int, samples: tuple, prof: dict, cache: Path,
-                 fresh: bool) -> list[dict]:
-    """Render the open scene with Cycles at each sample count; cached per scene hash (tag)."""
+                 fresh: bool, denoise: bool = False) -> list[dict]:
+    """Render the open scene with Cycles at each sample count (``denoise``: through
+    OpenImageDenoise, its time included); cached per scene hash (tag)."""
     from lpv_addon.render import cycles
 
     folder = cache / "cycles_sweep"
@@ -498,7 +514,7 @@ def cycles_sweep(scene, tag: str, bounces: int, samples: tuple, prof: dict, cach
     out = []
     warmed = False
     for n in samples:
-        exr_path = folder / f"{tag}_s{n}_b{bounces}.exr"
+        exr_path = folder / f"{tag}_s{n}_b{bounces}{'_oidn' if denoise else ''}.exr"
         meta_path = exr_path.with_suffix(".json")
         meta = None
         if not fresh and exr_path.is_file() and meta_path.is_file():
@@ -506,7 +522,8 @@ def cycles_sweep(scene, tag: str, bounces: int, samples: tuple, prof: dict, cach
         if meta is None:
             if not warmed:  # the first render of a process loads kernels: not timed
                 cycles.render_cycles_passes(folder / f".warm_{os.getpid()}.exr", samples=1,
-                                               diffuse_bounces=bounces, scene=scene, seed=99)
+                                               diffuse_bounces=bounces, scene=scene, seed=99,
+                                               denoise=denoise)
                 (folder / f".warm_{os.getpid()}.exr").unlink(missing_ok=True)
                 warmed = True
             times = []
@@ -514,15 +531,16 @@ def cycles_sweep(scene, tag: str, bounces: int, samples: tuple, prof: dict, cach
             for rep in range(reps):
                 info = cycles.render_cycles_passes(exr_path, samples=n,
                                                       diffuse_bounces=bounces, scene=scene,
-                                                      seed=1000 + n)
+                                                      seed=1000 + n, denoise=denoise)
                 times.append(info["seconds"])
                 if info["seconds"] >= prof["cycles_repeat_below_s"]:
                     break
-            meta = {"samples": n, "bounces": bounces, "times_s": times,
+            meta = {"samples": n, "bounces": bounces, "denoise": denoise, "times_s": times,
                     "time_s": statistics.median(times),
                     "measured": datetime.datetime.now().isoformat(timespec="seconds")}
             meta_path.write_text(json.dumps(meta, indent=1))
-            _log(f"  Cycles {n:>4} spp b{bounces}: {meta['time_s']:.2f} s (median of "
+            _log(f"  Cycles{' + OIDN' if denoise else ''} {n:>4} spp b{bounces}: "
+                 f"{meta['time_s']:.2f} s (median of "
                  f"{len(times)})")
         out.append({**meta, "path": str(exr_path)})
         if meta["time_s"] > prof["cycles_cap_s"]:
@@ -533,6 +551,21 @@ def cycles_sweep(scene, tag: str, bounces: int, samples: tuple, prof: dict, cach
 # ---------------------------------------------------------------------------------------------
 # One scene
 # ---------------------------------------------------------------------------------------------
+
+
+def _kd10(row: dict) -> bool:
+    return row.get("settings", {}).get("angular") == KD10_ANGULAR
+
+
+def peer_table(base_row: dict, lpv1: list[dict], raw_cycles: list[dict],
+               peer_curves: dict) -> list[dict]:
+    """Equal-time and equal-error verdicts of LPV's defaults and its most accurate setting
+    (Combined) against raw Cycles and every peer."""
+    if not lpv1:
+        return []
+    named = {"defaults": base_row if "error" not in base_row else None,
+             "most accurate": min(lpv1, key=lambda r: r["combined"])}
+    return peers.table(named, {PEER_RAW: raw_cycles, **peer_curves})
 
 
 def _multi_ref_needed(settings) -> bool:
@@ -630,11 +663,15 @@ def run_scene(name: str, prof: dict, mode: str, cache: Path, out: Path, fresh: b
         evaluate(settings, "oat", field, value)
     for settings in grid_iteration_pairs(base, mode):
         evaluate(settings, "grid")
+    # KD10's own method (the seed's SH transport) as a curve of its grid resolution: a peer.
+    if "angular" in names:
+        for g in prof["kd10_grids"]:
+            evaluate(base.updated(angular=KD10_ANGULAR, grid_resolution=g), "kd10")
     # Greedy combination: per field, the value that lowered the indirect error most.
     best = base
-    ok = [r for r in rows if "error" not in r and r["reference_bounces"] == 1]
+    ok = [r for r in rows if "error" not in r and r["reference_bounces"] == 1 and not _kd10(r)]
     for f in dataclasses.fields(base):
-        if f.name == MULTI_FIELD or f.name == "backend":
+        if f.name in (MULTI_FIELD, "backend", "angular"):
             continue
         cands = [r for r in ok if r.get("field") == f.name]
         if not cands or "indirect" not in base_row:
@@ -682,8 +719,30 @@ def run_scene(name: str, prof: dict, mode: str, cache: Path, out: Path, fresh: b
         if "error" not in r:
             r["indirect_corr"] = denoised(r["indirect"], floors.get(r["reference_bounces"]))
 
+    # ---- Peers: Cycles + OpenImageDenoise, EEVEE, KD10 (tools/peers.py)
+    peer_curves = {}
+    if prof["denoised_samples"]:
+        curve = []
+        for entry in cycles_sweep(scene, tag, 1, prof["denoised_samples"], prof, cache, fresh,
+                                  denoise=True):
+            row = {k: v for k, v in entry.items() if k != "path"}
+            row.update(errors(_read_exr(entry["path"]), refs[1]))
+            row.pop("indirect", None)  # only Combined is denoised
+            curve.append(row)
+        peer_curves[PEER_OIDN] = curve
+    if prof["eevee_samples"]:
+        try:
+            for point in peers.eevee_points(blend, tag, prof, res, cache, fresh, _read_exr,
+                                            lambda p: errors(p, refs[1])):
+                peer_curves[point["peer"]] = [point]
+        except Exception as exc:  # noqa: BLE001 - EEVEE failing must not lose the report
+            _log(f"{name}: EEVEE failed: {type(exc).__name__}: {exc}")
+    kd10 = [r for r in rows if "error" not in r and _kd10(r) and r["reference_bounces"] == 1]
+    if kd10:
+        peer_curves[PEER_KD10] = kd10
+
     # ---- Analysis
-    lpv1 = [r for r in rows if "error" not in r and r["reference_bounces"] == 1]
+    lpv1 = [r for r in rows if "error" not in r and r["reference_bounces"] == 1 and not _kd10(r)]
     front = pareto_front(lpv1, "indirect") if lpv1 else []
     for r in rows:
         if "error" in r:
@@ -702,10 +761,12 @@ def run_scene(name: str, prof: dict, mode: str, cache: Path, out: Path, fresh: b
         r["beats_cycles_eq"] = bool(eq is None or r["indirect_corr"] < eq)
     best_row = min(lpv1, key=lambda r: r["indirect"]) if lpv1 else None
     fastest_cycles = min(cyc.get(1, []), key=lambda c: c["time_s"]) if cyc.get(1) else None
+    peer_verdicts = peer_table(base_row, lpv1, cyc.get(1, []), peer_curves)
 
     figs = {}
     try:
-        figs["error_vs_time"] = plot_error_vs_time(name, rows, front, cyc, out, floor)
+        figs["error_vs_time"] = plot_error_vs_time(name, [r for r in rows if not _kd10(r)],
+                                                   front, cyc, out, floor, peer_curves)
         if best_row is not None:
             eq_entry = min(cyc[1], key=lambda c: abs(math.log(c["time_s"] / best_row["time_s"])))
             figs["images"] = plot_images(name, refs[1], images[best_row["key"]], best_row,
@@ -715,6 +776,7 @@ def run_scene(name: str, prof: dict, mode: str, cache: Path, out: Path, fresh: b
     return {
         "name": name, "facts": facts, "references": ref_info, "reference_tag": tag,
         "lpv": rows, "cycles": {str(b): c for b, c in cyc.items()},
+        "peers": peer_curves, "peer_verdicts": peer_verdicts,
         "pareto": [r["label"] for r in front], "best": None if best_row is None
         else best_row["label"], "base": base_row.get("label"),
         "fastest_cycles": fastest_cycles, "reference_noise_floor": floor,
@@ -754,8 +816,12 @@ def _save(fig, path: Path) -> str:
     return path.name
 
 
+PEER_STYLE = {PEER_OIDN: ("tab:blue", "v-"), PEER_KD10: ("tab:orange", "^-")}
+
+
 def plot_error_vs_time(name: str, rows: list[dict], front: list[dict], cyc: dict,
-                       out: Path, floor: float | None = None) -> str:
+                       out: Path, floor: float | None = None,
+                       peer_curves: dict | None = None) -> str:
     plt = _plt()
     keys = (("indirect", "indirect diffuse: relative RMSE"),
             ("combined", "Combined: relative RMSE"), ("flip", "Combined: HDR-FLIP"))
@@ -785,6 +851,16 @@ def plot_error_vs_time(name: str, rows: list[dict], front: list[dict], cyc: dict
             ax.plot([r["time_s"] for r in front], [r[key] for r in front], "o-",
                     color="tab:red", mfc="none", ms=10, lw=1, alpha=0.7,
                     label="LPV Pareto front (indirect)")
+        for peer, curve in (peer_curves or {}).items():
+            pts = sorted((c["time_s"], c[key]) for c in curve if c.get(key) is not None)
+            if not pts:
+                continue
+            pcolour, style = PEER_STYLE.get(peer, ("tab:purple", "*"))
+            if peer.startswith("EEVEE"):  # one point each; a software-renderer time
+                style = "P" if "on" in peer else "X"
+            ax.plot([p[0] for p in pts], [p[1] for p in pts], style, color=pcolour, ms=7,
+                    label=peer + (" (software-renderer time)" if any(
+                        c.get("software") for c in curve) else ""))
         if key == "indirect" and floor:
             ax.axhline(floor, color="0.5", ls=":", lw=1,
                        label="reference noise (errors below are not resolved)")
@@ -803,8 +879,10 @@ def plot_error_vs_time(name: str, rows: list[dict], front: list[dict], cyc: dict
         axs[0].scatter([], [], facecolors="none", edgecolors="k", marker="D",
                        label="LPV, vs 4-bounce reference")
     axs[0].legend(fontsize=7, loc="best")
-    fig.suptitle(f"{name}: error against time (LPV settings sweep vs Cycles samples; "
-                 "numbers: Cycles samples per pixel)", fontsize=11)
+    if peer_curves:
+        axs[1].legend(fontsize=7, loc="best")
+    fig.suptitle(f"{name}: error against time (LPV settings sweep vs Cycles samples and the "
+                 "peers; numbers: Cycles samples per pixel)", fontsize=11)
     fig.tight_layout()
     return _save(fig, out / f"{name}_error_vs_time.png")
 
@@ -1123,6 +1201,12 @@ def write_readme(data: dict, out: Path) -> Path:
          "compare indirect errors with it removed, sqrt(e^2 - floor^2), for LPV and Cycles "
          "alike (tables show both). Past the last Cycles point the curve is extrapolated as "
          "time^-p (p clamped to [1/2, 1])."),
+        ("- Peers: Cycles with OpenImageDenoise (Blender's default denoiser inputs, "
+         "albedo + normal, prefilter Accurate; the time includes the denoiser; warm), EEVEE "
+         f"with ray tracing on and off ({peers.EEVEE_SAMPLES} render samples, Blender's "
+         "default, or the profile's count; the first render compiles shaders and is not "
+         "timed), and KD10's own method (`angular=sh`, the seed's SH transport) over grid "
+         "resolutions. LPV's own Pareto front and verdicts leave the KD10 rows out."),
         ("- Settings sweep: one setting at a time around the defaults (the fields of "
         "GISettings are read at run time), grid resolution x iterations, a greedy "
         "combination of the one-at-a-time winners, and multi-bounce rows (bounces = 4, "
@@ -1152,6 +1236,7 @@ def write_readme(data: dict, out: Path) -> Path:
                      "reference noise", "10x criterion"], rows)
     lines += [""]
 
+    lines += _peer_section(scenes)
     for s in scenes:
         lines += _scene_section(s)
     lines += _settings_section(scenes)
@@ -1174,6 +1259,52 @@ def write_readme(data: dict, out: Path) -> Path:
     path = out / "README.md"
     path.write_text("\n".join(lines))
     return path
+
+
+def _peer_point(c: dict) -> str:
+    if "raytracing" in c:
+        return f"{c['samples']} samples"
+    if "samples" in c:
+        return f"{c['samples']} spp"
+    return c.get("label", "")
+
+
+def _peer_section(scenes: list[dict]) -> list[str]:
+    """The verdict table per peer and scene: equal time and equal error, wins and losses."""
+    rows = []
+    for s in scenes:
+        for v in s.get("peer_verdicts", []):
+            if v["peer_best"] is None:
+                continue
+            eq_t = "-" if not v["time_meaningful"] else (
+                "no image yet" if v["eq_time_peer_error"] is None
+                else f"{_f(v['eq_time_peer_error'])} ({v['eq_time_ratio']:.2f}x)")
+            eq_e = "-" if not v["time_meaningful"] else (
+                f"never (best {_f(v['peer_best'])})" if v["eq_error_peer_time_s"] is None
+                else f"{_t(v['eq_error_peer_time_s'])} ({v['eq_error_ratio']:.2f}x)")
+            word = {True: "LPV wins", False: "LPV loses", None: "-"}[v["wins"]]
+            rows.append([s["name"], v["lpv_row"], v["peer"], v["key"],
+                         f"{_f(v['lpv_error'])} / {_t(v['lpv_time_s'])}", eq_t, eq_e, word])
+    if not rows:
+        return []
+    lines = ["## Against the peers a user would pick instead", "",
+             ("Each row: LPV (its defaults, and its setting with the lowest Combined error) "
+              "against one peer on one error measure. *Equal time*: the peer's error at "
+              "LPV's frame time (log-log between its measured points; its best error held "
+              "past its slowest point; ratio peer / LPV, above 1 LPV is better). *Equal "
+              "error*: the time the peer needs to reach LPV's error (ratio peer / LPV, above "
+              "1 LPV is faster). EEVEE ran on a software OpenGL renderer here, so its time is "
+              "not a GPU time: it is compared on error only. Denoised Cycles and EEVEE have "
+              "no separable indirect pass: Combined only."), ""]
+    lines += _table(["scene", "LPV", "peer", "error", "LPV error / time", "peer, equal time",
+                     "peer, equal error", "verdict"], rows)
+    lines += [""]
+    for s in scenes:
+        texts = [v["text"] for v in s.get("peer_verdicts", [])
+                 if v["lpv_row"] == "defaults" and v["key"] == "combined"]
+        if texts:
+            lines += [f"- **{s['name']}**, LPV defaults, Combined: " + " | ".join(texts)]
+    return lines + [""]
 
 
 def _scene_section(s: dict) -> list[str]:
@@ -1211,6 +1342,13 @@ def _scene_section(s: dict) -> list[str]:
                          _f(c["flip"]), len(c["times_s"])])
     lines += _table(["Cycles", "time (median)", "indirect (measured / noise removed)",
                      "combined", "FLIP", "runs"], crow)
+    if s.get("peers"):
+        lines += ["", "Peers (Combined against the same reference; indirect where the peer "
+                  "has the pass):", ""]
+        lines += _table(["peer", "point", "time (median)", "indirect", "combined", "FLIP"],
+                        [[peer, _peer_point(c), _t(c["time_s"]) + (" (software GL)" if c.get(
+                            "software") else ""), _f(c.get("indirect")), _f(c["combined"]),
+                          _f(c["flip"])] for peer, curve in s["peers"].items() for c in curve])
     # Stage split for the defaults and the most accurate setting
     stage_rows = [r for r in ok if r["label"] in (s["base"], s["best"])]
     stages = sorted({k for r in stage_rows for k in r["stages_ms"]},
@@ -1484,6 +1622,7 @@ def main(argv: list[str] | None = None) -> int:
     out = args.out.resolve()
     out.mkdir(parents=True, exist_ok=True)
     t_start = time.perf_counter()
+    load_start = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     _import_bpy()  # before the GL context: bpy first, as the batch CLI does
     from tools import scenes as scene_builders
 
@@ -1532,7 +1671,8 @@ def main(argv: list[str] | None = None) -> int:
                                                     else f" --profile {mode}")),
         "profile": mode, "date": datetime.datetime.now().strftime("%Y-%m-%d %H:%M"),
         "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python "
-                   f"{platform.python_version()}, load {load:.1f}",
+                   f"{platform.python_version()}, load {load_start:.1f} at the start, "
+                   f"{load:.1f} at the end (1-minute average)",
         "commit": _git_commit(), "resolution": list(res), "repeats": prof["repeats"],
         "seconds": time.perf_counter() - t_start,
     }

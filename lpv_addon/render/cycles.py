@@ -3,7 +3,7 @@
 The Compare with Cycles operator (and the team's report, which caches them by scene content:
 tools/scene_hash.py) calibrates LPV against these files. :func:`render_cycles_passes` renders
 the current scene with Cycles on the CPU (Combined, Diffuse Direct/Indirect/Color; only
-diffuse bounces; no clamping, denoising or adaptive sampling; fixed seed; 1-pixel box filter)
+diffuse bounces; no clamping, denoising (unless asked) or adaptive sampling; fixed seed; 1-pixel box filter)
 and puts every setting it touched back afterwards.
 
 Cycles' units, measured with this module (tests/test_reference.py pins them): Diffuse Direct
@@ -43,6 +43,7 @@ def _settings(
     diffuse_bounces: int,
     resolution: tuple[int, int] | None,
     seed: int,
+    denoise: bool = False,
 ) -> list[tuple[Any, str, Any]]:
     """(owner, attribute, value) for every setting a reference render needs, in set order."""
     r = scene.render
@@ -53,7 +54,7 @@ def _settings(
         (c, "device", "CPU"),
         (c, "samples", int(samples)),
         (c, "use_adaptive_sampling", False),
-        (c, "use_denoising", False),
+        (c, "use_denoising", bool(denoise)),
         (c, "seed", int(seed)),
         (c, "use_animated_seed", False),
         (c, "sample_offset", 0),
@@ -97,6 +98,12 @@ def _settings(
         (view_layer, "use_pass_diffuse_indirect", True),
         (view_layer, "use_pass_diffuse_color", True),
     ]
+    if denoise:  # OpenImageDenoise with Blender's default inputs, prefilter and quality
+        out += [(c, "denoiser", "OPENIMAGEDENOISE"),
+                (c, "denoising_input_passes", "RGB_ALBEDO_NORMAL"),
+                (c, "denoising_prefilter", "ACCURATE")]
+        if hasattr(c, "denoising_quality"):
+            out.append((c, "denoising_quality", "HIGH"))
     if resolution is not None:
         w, h = (int(v) for v in resolution)
         out[1:1] = [(r, "resolution_x", w), (r, "resolution_y", h)]
@@ -119,9 +126,11 @@ def render_cycles_passes(
     resolution: tuple[int, int] | None = None,
     scene: bpy.types.Scene | None = None,
     seed: int = 0,
+    denoise: bool = False,
 ) -> dict:
     """Render ``scene`` (default: the context scene) with Cycles on the CPU into a
-    multi-layer EXR with Combined, Diffuse Direct, Diffuse Indirect and Diffuse Color.
+    multi-layer EXR with Combined, Diffuse Direct, Diffuse Indirect and Diffuse Color
+    (``denoise``: Combined through OpenImageDenoise, the time including it).
 
     ``diffuse_bounces`` sets both max and diffuse bounces (1: direct light plus one bounce,
     what LPV models); glossy, transmission and volume bounces are 0. Every render, Cycles and
@@ -135,7 +144,8 @@ def render_cycles_passes(
     out_path.parent.mkdir(parents=True, exist_ok=True)
     tmp = out_path.with_name(f".{out_path.stem}.{os.getpid()}.{uuid.uuid4().hex[:8]}.exr")
 
-    wanted = _settings(scene, view_layer, str(tmp), samples, diffuse_bounces, resolution, seed)
+    wanted = _settings(scene, view_layer, str(tmp), samples, diffuse_bounces, resolution, seed,
+                       denoise)
     # Snapshot everything first: setting one value can change another (file format -> depth).
     saved = [(owner, attr, getattr(owner, attr)) for owner, attr, _ in wanted]
     try:
