@@ -10,6 +10,7 @@ EEVEE's Combined mix direct and indirect light): they are compared on Combined o
 
 from __future__ import annotations
 
+import itertools
 import math
 import os
 import statistics
@@ -168,7 +169,7 @@ def error_at(curve: list[dict], t: float, key: str) -> tuple[float | None, str]:
         return None, "below"
     if t >= pts[-1][0]:
         return min(e for _, e in pts), "held"
-    for (t0, e0), (t1, e1) in zip(pts, pts[1:]):
+    for (t0, e0), (t1, e1) in itertools.pairwise(pts):
         if t0 <= t <= t1:
             if t1 == t0:
                 return min(e0, e1), "measured"

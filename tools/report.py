@@ -1343,8 +1343,8 @@ def _scene_section(s: dict) -> list[str]:
     lines += _table(["Cycles", "time (median)", "indirect (measured / noise removed)",
                      "combined", "FLIP", "runs"], crow)
     if s.get("peers"):
-        lines += ["", "Peers (Combined against the same reference; indirect where the peer "
-                  "has the pass):", ""]
+        lines += ["", ("Peers (Combined against the same reference; indirect where the "
+                       "peer has the pass):"), ""]
         lines += _table(["peer", "point", "time (median)", "indirect", "combined", "FLIP"],
                         [[peer, _peer_point(c), _t(c["time_s"]) + (" (software GL)" if c.get(
                             "software") else ""), _f(c.get("indirect")), _f(c["combined"]),
