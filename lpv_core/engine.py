@@ -289,7 +289,7 @@ class Engine:
             key = (light.position.tobytes(), grid.cell_size, grid.resolution)
             if key not in self._light_spaces:
                 note, reach = None, planner.enclosure_reach(grid.cell_size)
-                if planner.occluders_near(scene, light.position, reach):
+                if planner.occluders_around(scene, light.position, reach):
                     with Timer(stats, "planner"):
                         points, solid, missed, tol = self.raster.surroundings(
                             light.position, 1e-3 * grid.cell_size, 1.01 * reach,

@@ -347,14 +347,17 @@ def enclosure_reach(cell: float) -> float:
     return SMALL_ENCLOSURE_CELLS * cell * float(np.sqrt(3.0))
 
 
-def occluders_near(scene: Scene, point, reach: float) -> bool:
-    """Whether some occluder triangle overlaps the cube of half-side ``reach`` around
-    ``point`` (exact triangle/box test)."""
+def occluders_around(scene: Scene, point, reach: float) -> bool:
+    """Whether occluder triangles overlapping the cube of half-side ``reach`` around ``point``
+    reach past it on both sides of every axis: what a closed space within ``reach`` needs (a
+    lamp under a ceiling has occluders above it only)."""
     if not scene.triangle_count:
         return False
-    occ = scene.flag("occluder")
     p = np.asarray(point, np.float64)
-    return bool(_tri_box_overlap(scene.positions[occ], p - reach, p + reach).any())
+    tris = scene.positions[scene.flag("occluder")]
+    tris = tris[_tri_box_overlap(tris, p - reach, p + reach)]
+    return bool(tris.size) and all(tris[:, :, a].max() > p[a] > tris[:, :, a].min()
+                                   for a in range(3))
 
 
 def enclosure_note(light: Light, around, grid: Grid, label: str, largest: int) -> dict | None:

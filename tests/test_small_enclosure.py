@@ -70,9 +70,9 @@ def test_the_named_grid_cuts_the_leak():
     assert leak[16] > 0.9 and leak[32] < 0.25, leak
 
 
-def test_a_note_needs_an_occluder_within_reach():
+def test_only_lights_with_occluders_all_around_within_reach_are_looked_at():
     sc = crate_room(0.4, 16)
-    cell = 6.0 / 14.0
-    reach = planner.enclosure_reach(cell)
-    assert planner.occluders_near(sc, sc.lights[0].position, reach)
-    assert not planner.occluders_near(sc, np.array([1.5, 1.5, 1.5]), 1.0)
+    reach = planner.enclosure_reach(6.0 / 14.0)
+    assert planner.occluders_around(sc, sc.lights[0].position, reach)  # in the crate
+    assert not planner.occluders_around(sc, np.array([1.5, 1.5, 1.5]), 1.0)  # nothing near
+    assert not planner.occluders_around(sc, np.array([1.5, 1.5, 2.9]), 1.0)  # a ceiling lamp
