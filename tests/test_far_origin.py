@@ -91,3 +91,14 @@ def test_blender_room_renders_the_same_far_from_the_origin():
     assert near.mean() > 0
     rmse = error.relative_rmse(far, near)
     assert rmse <= TOLERANCE, rmse
+
+
+def test_core_renders_a_sunlit_box_the_same_far_from_the_origin():
+    """The sun's orthographic views and cascades at 1e7 m: core_scenes' open Cornell box."""
+    settings = GISettings(grid_resolution=16, rsm_resolution=64, shadow_resolution=256,
+                          cascades=2, cascades_auto=False, antialias=1)
+    near = _indirect(demo.cornell_box("SUN", (40, 40), settings))
+    far = _indirect(demo.cornell_box("SUN", (40, 40), settings, offset=OFFSET))
+    assert near.mean() > 0
+    rmse = error.relative_rmse(far, near)
+    assert rmse <= TOLERANCE, rmse
