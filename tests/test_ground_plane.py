@@ -89,3 +89,18 @@ def test_a_small_space_in_a_large_box_is_not_an_enclosed_view():
     count, why = planner.cascade_count(3, lo, hi, eye, pts, 0.0, space=4.0)
     assert count == 3 and "enclosed" not in why
     assert planner.cascade_count(3, lo, hi, eye, pts, 0.0, space=1500.0)[0] == 1
+
+
+def test_the_enclosure_box_is_the_room_wherever_the_eye_stands():
+    """Its faces sit on the walls (triangle corners), not on float32 hit points: the same box
+    from two eye positions, exactly the room's bounds, so the cached grids stay valid."""
+    from lpv_core.scene import Camera
+
+    room = _on_ground(closed_cornell("POINT", (0, 0, 0), SETTINGS), GROUNDS["2 km quad"])
+    boxes = []
+    for eye in ((0.6, -0.9, 1.4), (-0.5, -0.6, 1.6)):
+        room.camera = Camera.look_at(eye, (0.0, 0.0, 1.0), resolution=(16, 16), near=0.02)
+        lo, hi = engine.Engine().lpv_bounds(room)
+        boxes.append(np.concatenate([lo, hi]))
+    np.testing.assert_array_equal(boxes[0], boxes[1])
+    np.testing.assert_array_equal(boxes[0], [-1, -1, 0, 1, 1, 2])
