@@ -263,6 +263,7 @@ class Engine:
             return self._around[1]
         self._send(scene, stats, 0.5 * (b.lo + b.hi))
         near = float(proj[2, 3] / (proj[2, 2] - 1.0))  # the camera's clip start
+        near = near if np.isfinite(near) and near > 0 else 1e-6 * float(np.max(b.hi - b.lo))
         far = float(np.linalg.norm(np.maximum(np.abs(b.lo - eye), np.abs(b.hi - eye)))) * 1.01
         with Timer(stats or Stats(), "planner"):
             points, solid, missed, tol = self.raster.surroundings(eye, near, max(far, 2 * near),
