@@ -127,6 +127,41 @@ off.free()
 buf.dimensions = w * h * 4
 res["drawn"] = np.array(buf.to_list(), np.float32).reshape(h, w, 4)[::-1]
 
+# View.draw as view_draw calls it, with the region's size and matrices (no window headless)
+# and the two RenderEngine methods it uses: request, polled redraws, the image drawn.
+import time
+class Engine:
+    stats = []
+    def get_preview_pixel_size(self, scene):
+        return 1
+    def update_stats(self, stats, info):
+        self.stats.append(info)
+ctx = SimpleNamespace(region=SimpleNamespace(width=w, height=h), region_data=SimpleNamespace(
+    view_matrix=cam.matrix_world.inverted(), window_matrix=cam.calc_matrix_camera(dg, x=w, y=h)))
+view_state, engine, requests = rendered.View(), Engine(), []
+def view_draw():
+    off = gpu.types.GPUOffScreen(w, h, format="RGBA32F")
+    with off.bind():
+        fb = gpu.state.active_framebuffer_get()
+        fb.clear(color=(0, 0, 0, 0))
+        with gpu.matrix.push_pop(), gpu.matrix.push_pop_projection():
+            gpu.matrix.load_identity()
+            gpu.matrix.load_projection_matrix(Matrix.Translation((-1, -1, 0))
+                                              @ Matrix.Diagonal((2 / w, 2 / h, 1, 1)))
+            view_state.draw(engine, ctx, dg)
+        buf = fb.read_color(0, 0, w, h, 4, 0, "FLOAT")
+    off.free()
+    requests.append(view_state.pending is not None)
+    buf.dimensions = w * h * 4
+    return np.array(buf.to_list(), np.float32).reshape(h, w, 4)[::-1]
+for _ in range(1200):
+    res["view_draw"] = view_draw()
+    if view_state.image is not None:
+        break
+    time.sleep(0.05)
+res["view_draw"] = view_draw()  # the same view again: no new request
+out["view_draw_requests"], out["view_draw_stats"] = requests, engine.stats
+
 # Film > Transparent: alpha 0 where no surface is seen; Workbench's coverage as reference.
 scene.render.film_transparent = True
 scene.render.filepath = os.path.join(tmp, "transparent", "still.exr")
@@ -306,6 +341,18 @@ def test_rendered_viewport_image_matches_f12(run):
     assert got[m].sum() / expect[m].sum() == pytest.approx(1.0, rel=0.02)
     # (linear texture filtering at the pixel centres: float rounding)
     np.testing.assert_allclose(shots["drawn"], shots["view_Combined"], rtol=1e-4, atol=1e-5)
+
+
+def test_view_draw_requests_once_and_draws_the_answer(run):
+    """View.draw (what view_draw runs): the first draw sends the view to the worker, redraws
+    poll until the image arrives and draw it; an unchanged view sends nothing new."""
+    tmp, out, _ = run
+    shots = np.load(tmp / "view.npz")
+    requests, stats = out["view_draw_requests"], out["view_draw_stats"]
+    assert requests[0] and not requests[-1] and not requests[-2], requests
+    assert requests == sorted(requests, reverse=True)  # one request in flight, then none
+    assert stats[0] == "LPV GI: updating" and stats[-1] == "", stats
+    np.testing.assert_allclose(shots["view_draw"], shots["view_Combined"], rtol=1e-4, atol=1e-5)
 
 
 def test_film_transparent_alpha_follows_coverage(run):
