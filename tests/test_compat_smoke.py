@@ -190,6 +190,7 @@ def test_smoke(line: str, runs, reference_frame: Path) -> None:
     assert res["render_batch"] == ["FINISHED"], log
     assert res["frames"] == ["0001.exr"], res
     assert res["disabled"], res
+    assert res["f12"] == ["FINISHED"], log  # the LPV_GI render engine renders on this line
     # The batch frame's worker ran the compiled kernels (bundled numba) too.
     assert "numba" in json.dumps(res["stats"]), res["stats"]
     ours, ref = _read_exr(out / "0001.exr"), _read_exr(reference_frame)

@@ -5,7 +5,8 @@
 Installs the extension zip into the (fresh, temporary) Blender user folder the way Blender's
 "Install from Disk" does, checks it registered, builds the demo scene (the Cornell box of
 `python -m lpv_addon.batch --demo`), runs one LPV update (`bpy.ops.lpv.update`) and renders one
-batch frame (`bpy.ops.lpv.render_batch`) to OUT_DIR/0001.exr. Prints one line
+batch frame (`bpy.ops.lpv.render_batch`) to OUT_DIR/0001.exr, and one F12 frame with the
+LPV_GI render engine (`bpy.ops.render.render`). Prints one line
 `RESULT={json}` with what it saw; tests/test_compat_smoke.py judges it and compares the frame.
 
 Only public entry points of the installed extension are used: `bl_ext.user_default.<id>`
@@ -83,6 +84,8 @@ def run(zip_path: str, out_dir: str) -> dict:
     out["frames"] = sorted(p.name for p in Path(out_dir).glob("*.exr"))
     stats = Path(out_dir) / "stats.json"
     out["stats"] = json.loads(stats.read_text()) if stats.is_file() else None
+    scene.render.engine = "LPV_GI"  # the render engine registered: one F12 frame
+    out["f12"] = sorted(bpy.ops.render.render(write_still=False))
     addon_utils.disable(module, default_set=True)
     out["disabled"] = module not in bpy.context.preferences.addons
     return out
