@@ -40,10 +40,15 @@ def test_antialias_does_not_touch_the_lpv():
 
 @pytest.mark.parametrize("bad", [0, deferred.MAX_ANTIALIAS + 1, 1.5])
 def test_bad_antialias_is_named(bad):
-    eng = engine.Engine()
-    scene = demo.cornell_box("SPOT", (8, 8), GISettings(antialias=bad))
     with pytest.raises(ValueError, match="antialias"):
-        deferred.render(eng, scene, eng.update(scene))
+        GISettings(antialias=bad)
+    # A settings object changed after it was checked is refused by the render itself.
+    eng = engine.Engine()
+    scene = demo.cornell_box("SPOT", (8, 8), GISettings())
+    result = eng.update(scene)
+    scene.settings.antialias = bad
+    with pytest.raises(ValueError, match="antialias"):
+        deferred.render(eng, scene, result)
 
 
 @pytest.mark.parametrize("offset", [0.0, 1.0e5])

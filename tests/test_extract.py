@@ -363,10 +363,17 @@ def test_light_units():
     assert np.allclose(spot.matrix, np.array(warm.matrix_world))
 
 
-def test_nonfinite_light_is_a_clear_error():
+def test_nonfinite_light_is_left_out_counted_and_named(capfd):
     light("POINT", "broken", energy=float("nan"))
-    with pytest.raises(ValueError, match="light 'broken'"):
-        run()
+    light("POINT", "tinted", energy=10.0, color=(float("nan"), 1.0, 1.0))
+    light("POINT", "fine", energy=10.0)
+    scene = run()
+    ls = lights_by_name(scene)
+    assert set(ls) == {"tinted", "fine"}  # the NaN power is dropped, the NaN colour defaulted
+    assert np.isfinite(ls["tinted"].color).all()
+    assert scene.dropped["lights_with_nonfinite_transform_or_power"] == 1
+    err = capfd.readouterr().err
+    assert "light 'broken'" in err and "light 'tinted'" in err and "'fine'" not in err
 
 
 # ------------------------------------------------------------------------------- camera

@@ -7,6 +7,7 @@ per-triangle Python). Per-mesh arrays are cached within one call so instances co
 from __future__ import annotations
 
 import math
+import sys
 import time
 from contextlib import contextmanager
 
@@ -629,11 +630,10 @@ def light_from_object(ob: bpy.types.Object, matrix: np.ndarray) -> core.scene.Li
         gi = float(props.gi_intensity)
         gi_color = np.array(props.gi_color[:3], np.float32)
     values = np.concatenate([color, [power, gi], matrix.ravel()])
-    if not np.isfinite(values).all():
-        raise ValueError(
-            f"light '{ob.name}': non-finite colour, power, GI intensity or transform "
-            f"(colour {tuple(color)}, power {power}); fix the light or its drivers"
-        )
+    if not np.isfinite(values).all():  # make_scene drops or defaults it and counts it
+        print(f"LPV GI: light '{ob.name}': non-finite colour, power, GI intensity or "
+              f"transform (colour {tuple(color)}, power {power}); left out or defaulted",
+              file=sys.stderr)
     return core.scene.Light(
         name=ob.name,
         type=kind,

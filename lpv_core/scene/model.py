@@ -125,8 +125,9 @@ class GISettings:
     def __post_init__(self) -> None:
         if self.angular not in ANGULAR_MODELS:
             raise ValueError(_angular_error(self.angular))
-        for f in dataclasses.fields(self):
-            setattr(self, f.name, _checked(f.name, getattr(self, f.name)))
+        for f in dataclasses.fields(self):  # a subclass's own fields are its own to check
+            if f.name in SETTING_RANGES:
+                setattr(self, f.name, _checked(f.name, getattr(self, f.name)))
 
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)
