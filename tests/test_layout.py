@@ -12,7 +12,11 @@ import pytest
 from conftest import ROOT
 
 PACKAGES = ("lpv_core", "lpv_addon")
-ZIP_PYTHON_LINES = 14_000  # the budget for the extension zip's Python
+# The extension zip's Python: 14,000 was the budget of the restructuring (13,721 lines then);
+# the render engine, the shadow and RSM budgets, the input checks and the batch's output
+# handling added about 1,500 lines of new behaviour. The cap catches duplicated code growing
+# back; raise it only for new behaviour, by what that behaviour measures.
+ZIP_PYTHON_LINES = 16_000
 
 
 def _module_name(path: Path) -> str:
