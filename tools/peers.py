@@ -14,7 +14,6 @@ import itertools
 import math
 import os
 import statistics
-import time
 import uuid
 from pathlib import Path
 
@@ -75,25 +74,9 @@ def render_eevee_passes(out_path, scene, raytracing: bool, samples: int = EEVEE_
     if resolution is not None:
         wanted[1:1] = [(r, "resolution_x", int(resolution[0])),
                        (r, "resolution_y", int(resolution[1]))]
-    saved = [(o, a, getattr(o, a)) for o, a, _ in wanted]
-    try:
-        for o, a, v in wanted:
-            if getattr(o, a) != v:
-                setattr(o, a, v)
-        t0 = time.perf_counter()
-        bpy.ops.render.render(write_still=True, scene=scene.name)
-        seconds = time.perf_counter() - t0
-        if not tmp.is_file():
-            raise RuntimeError(f"EEVEE did not write {tmp} (scene {scene.name!r})")
-        os.replace(tmp, out_path)
-    finally:
-        for o, a, old in saved:
-            try:
-                if getattr(o, a) != old:
-                    setattr(o, a, old)
-            except (TypeError, ValueError, AttributeError):  # pragma: no cover - defensive
-                pass
-        tmp.unlink(missing_ok=True)
+    from lpv_addon.render.cycles import render_with_settings
+
+    seconds = render_with_settings(scene, wanted, tmp, out_path)
     return {"seconds": seconds, "path": str(out_path)}
 
 
@@ -157,6 +140,18 @@ def _eevee_child(blend: str, folder: str, tag: str, samples: int, resolution: st
 # ---------------------------------------------------------------------------------------------
 
 
+def loglog(pts: list[tuple[float, float]], t: float) -> tuple[float | None, str]:
+    """The error at time ``t`` between sorted (time, error) points, log-log interpolated;
+    (None, "none") outside them."""
+    for (t0, e0), (t1, e1) in itertools.pairwise(pts):
+        if t0 <= t <= t1:
+            if t1 == t0:
+                return min(e0, e1), "measured"
+            a = (math.log(t) - math.log(t0)) / (math.log(t1) - math.log(t0))
+            return math.exp(math.log(e0) + a * (math.log(e1) - math.log(e0))), "interpolated"
+    return None, "none"
+
+
 def error_at(curve: list[dict], t: float, key: str) -> tuple[float | None, str]:
     """A peer's error at time ``t``: log-log interpolation between its points, its last
     point's error beyond them (a peer is not assumed to improve past what was measured),
@@ -169,13 +164,7 @@ def error_at(curve: list[dict], t: float, key: str) -> tuple[float | None, str]:
         return None, "below"
     if t >= pts[-1][0]:
         return min(e for _, e in pts), "held"
-    for (t0, e0), (t1, e1) in itertools.pairwise(pts):
-        if t0 <= t <= t1:
-            if t1 == t0:
-                return min(e0, e1), "measured"
-            a = (math.log(t) - math.log(t0)) / (math.log(t1) - math.log(t0))
-            return math.exp(math.log(e0) + a * (math.log(e1) - math.log(e0))), "interpolated"
-    return None, "none"  # pragma: no cover - unreachable
+    return loglog(pts, t)
 
 
 def time_to(curve: list[dict], target: float, key: str) -> tuple[float | None, str]:

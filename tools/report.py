@@ -29,7 +29,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import datetime
-import itertools
 import json
 import math
 import os
@@ -300,13 +299,7 @@ def curve_at(curve: list[dict], t: float, key: str = "indirect",
     if t >= pts[-1][0]:
         t1, e1 = pts[-1]
         return e1 * (t1 / t) ** slope, ("measured" if t == t1 else "extrapolated")
-    for (t0, e0), (t1, e1) in itertools.pairwise(pts):
-        if t0 <= t <= t1:
-            if t1 == t0:
-                return min(e0, e1), "measured"
-            a = (math.log(t) - math.log(t0)) / (math.log(t1) - math.log(t0))
-            return math.exp(math.log(e0) + a * (math.log(e1) - math.log(e0))), "interpolated"
-    return None, "none"  # pragma: no cover - unreachable
+    return peers.loglog(pts, t)
 
 
 def denoised(error: float, floor: float | None) -> float:

@@ -112,6 +112,36 @@ def _settings(
     return out
 
 
+def render_with_settings(scene: bpy.types.Scene, wanted: list, tmp: Path,
+                         out_path: Path) -> float:
+    """Render ``scene`` to ``tmp`` with the (owner, attribute, value) settings ``wanted``,
+    rename it to ``out_path`` and put every setting back, even on error; the render's time."""
+    # Snapshot everything first: setting one value can change another (file format -> depth).
+    saved = [(owner, attr, getattr(owner, attr)) for owner, attr, _ in wanted]
+    try:
+        for owner, attr, value in wanted:
+            if getattr(owner, attr) != value:
+                setattr(owner, attr, value)
+        t0 = time.perf_counter()
+        bpy.ops.render.render(write_still=True, scene=scene.name)
+        seconds = time.perf_counter() - t0
+        if not tmp.is_file():
+            raise RuntimeError(f"{scene.render.engine} did not write {tmp} "
+                               f"(scene {scene.name!r})")
+        os.replace(tmp, out_path)
+    finally:
+        # Restore in the order of setting: image format before depth/codec (later settings
+        # are only valid for the earlier ones).
+        for owner, attr, old in saved:
+            try:
+                if getattr(owner, attr) != old:
+                    setattr(owner, attr, old)
+            except (TypeError, ValueError, AttributeError):  # pragma: no cover - defensive
+                pass
+        tmp.unlink(missing_ok=True)
+    return seconds
+
+
 def default_view_layer(scene: bpy.types.Scene) -> bpy.types.ViewLayer:
     ctx = bpy.context
     if getattr(ctx, "scene", None) == scene and getattr(ctx, "view_layer", None) is not None:
@@ -146,30 +176,9 @@ def render_cycles_passes(
 
     wanted = _settings(scene, view_layer, str(tmp), samples, diffuse_bounces, resolution, seed,
                        denoise)
-    # Snapshot everything first: setting one value can change another (file format -> depth).
-    saved = [(owner, attr, getattr(owner, attr)) for owner, attr, _ in wanted]
-    try:
-        for owner, attr, value in wanted:
-            if getattr(owner, attr) != value:
-                setattr(owner, attr, value)
-        res = (scene.render.resolution_x, scene.render.resolution_y)
-        t0 = time.perf_counter()
-        bpy.ops.render.render(write_still=True, scene=scene.name)
-        seconds = time.perf_counter() - t0
-        if not tmp.is_file():
-            raise RuntimeError(f"Cycles did not write {tmp} (scene {scene.name!r})")
-        os.replace(tmp, out_path)
-    finally:
-        # Restore in the order of setting: image format before depth/codec (later settings
-        # are only valid for the earlier ones).
-        for owner, attr, old in saved:
-            try:
-                if getattr(owner, attr) != old:
-                    setattr(owner, attr, old)
-            except (TypeError, ValueError, AttributeError):  # pragma: no cover - defensive
-                pass
-        if tmp.exists():
-            tmp.unlink()
+    res = (tuple(int(v) for v in resolution) if resolution is not None
+           else (scene.render.resolution_x, scene.render.resolution_y))
+    seconds = render_with_settings(scene, wanted, tmp, out_path)
     return {
         "seconds": seconds,
         "path": str(out_path),
