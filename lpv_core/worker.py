@@ -202,8 +202,9 @@ class Server:
 
 
 def warm_up(path: str) -> int:
-    """The warm-up child (runtime/warmup.py): the engine once on the worker's first scene, with
-    every light type and a camera, so that the kernels a later scene needs are compiled too."""
+    """The warm-up child (runtime/warmup.py): the engine on the worker's first scene, with every
+    light type, one and two cascades and a camera, so that the kernels a later scene needs are
+    compiled too."""
     import dataclasses
     import threading
     import time
@@ -234,6 +235,8 @@ def warm_up(path: str) -> int:
         lo, hi = points.min(0), points.max(0)
         scene.camera = Camera.look_at(hi + (hi - lo), (lo + hi) / 2, resolution=(16, 16))
         engine = Engine()
+        engine.update(scene, Stats())
+        scene.settings = scene.settings.updated(cascades_auto=False, cascades=2)  # hand-on too
         deferred.render(engine, scene, engine.update(scene, Stats()), Stats())
     except Exception as exc:  # noqa: BLE001 - the worker reports it and stays on numpy
         traceback.print_exc(file=sys.stderr)

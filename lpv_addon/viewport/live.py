@@ -456,7 +456,7 @@ def tick(require_viewport: bool = True) -> float:
     got = poll()
     if _follow_kernels():
         tag_redraw()
-    status_bar(kernel_text())
+    status_bar(kernel_text() if STATE.kernels.get("state") == "compiling" else None)
     if (props.live_update and STATE.dirty and STATE.pending is None
             and time.monotonic() - STATE.last_sent >= interval * 0.999):
         try:
