@@ -78,7 +78,8 @@ class Warmup:
         shutil.copyfile(path, copy)
         self.proc = subprocess.Popen(
             [sys.executable, "-m", "lpv_core.worker", "--warm-up", copy], text=True,
-            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=sys.stderr)
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=sys.stderr,
+            creationflags=getattr(subprocess, "CREATE_NO_WINDOW", 0))  # no console on Windows
         self.state, self.t0 = "compiling", time.monotonic()
         threading.Thread(target=self._follow, name="lpv-warm-up", daemon=True).start()
 
