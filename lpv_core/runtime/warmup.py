@@ -87,7 +87,8 @@ class Warmup:
         for line in self.proc.stdout:
             try:
                 msg = json.loads(line)
-                self.compiled, self.error = msg.get("compiled", self.compiled), msg.get("error", "")
+                self.compiled = msg.get("compiled", self.compiled)
+                self.error = msg.get("error", self.error)
             except (ValueError, AttributeError):
                 continue
         ok = self.proc.wait() == 0 and not self.error
