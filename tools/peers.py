@@ -105,8 +105,7 @@ def eevee_points(blend: Path, tag: str, prof: dict, resolution, cache: Path, fre
     for rt in (True, False):
         row = json.loads(metas[rt].read_text())
         row["peer"] = f"EEVEE, ray tracing {'on' if rt else 'off'}"
-        row.update(errors(read_exr(paths[rt])))
-        row.pop("indirect", None)  # EEVEE's Combined only: no separable indirect pass
+        row.update(errors(read_exr(paths[rt])))  # Combined only: no separable indirect pass
         points.append(row)
     return points
 

@@ -266,11 +266,18 @@ def hdr_flip(test: np.ndarray, ref: np.ndarray) -> float:
     return float(mean)
 
 
+def combined_errors(test: dict, ref: dict, flip: bool = True) -> dict:
+    """Errors of Combined alone (a peer without separable diffuse passes)."""
+    return {
+        "combined": relative_rmse(combined_term(test), combined_term(ref)),
+        "flip": hdr_flip(combined_term(test), combined_term(ref)) if flip else math.nan,
+    }
+
+
 def errors(test: dict, ref: dict, flip: bool = True) -> dict:
     return {
         "indirect": relative_rmse(indirect_term(test), indirect_term(ref)),
-        "combined": relative_rmse(combined_term(test), combined_term(ref)),
-        "flip": hdr_flip(combined_term(test), combined_term(ref)) if flip else math.nan,
+        **combined_errors(test, ref, flip),
         "indirect_mean_ratio": float(indirect_term(test).mean()
                                      / max(indirect_term(ref).mean(), 1e-30)),
     }
@@ -726,7 +733,7 @@ def run_scene(name: str, prof: dict, mode: str, cache: Path, out: Path, fresh: b
     if prof["eevee_samples"]:
         try:
             for point in peers.eevee_points(blend, tag, prof, res, cache, fresh, _read_exr,
-                                            lambda p: errors(p, refs[1])):
+                                            lambda p: combined_errors(p, refs[1])):
                 peer_curves[point["peer"]] = [point]
         except Exception as exc:  # noqa: BLE001 - EEVEE failing must not lose the report
             _log(f"{name}: EEVEE failed: {type(exc).__name__}: {exc}")
