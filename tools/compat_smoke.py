@@ -21,6 +21,7 @@ import importlib.util
 import json
 import os
 import sys
+import time
 import traceback
 from pathlib import Path
 
@@ -80,6 +81,16 @@ def run(zip_path: str, out_dir: str) -> dict:
         return out
     scene.lpv.enabled = True
     out["update"] = sorted(bpy.ops.lpv.update())
+    # The first update is served by the numpy reference while the bundled numba compiles the
+    # kernels in the background: wait for that (the viewport's timer step, headless) so the
+    # batch frame below shows whether the compiled kernels run on this Blender line.
+    live = sys.modules[f"{module}.lpv_addon.viewport.live"]
+    deadline = time.monotonic() + 900.0
+    while live.STATE.kernels.get("state") in ("waiting", "compiling") and (
+            time.monotonic() < deadline):
+        live.tick(require_viewport=False)
+        time.sleep(0.5)
+    out["kernels"] = dict(live.STATE.kernels)
     out["render_batch"] = sorted(bpy.ops.lpv.render_batch(directory=out_dir))
     out["frames"] = sorted(p.name for p in Path(out_dir).glob("*.exr"))
     stats = Path(out_dir) / "stats.json"
