@@ -1276,7 +1276,7 @@ def _peer_section(scenes: list[dict]) -> list[str]:
         for v in s.get("peer_verdicts", []):
             if v["peer_best"] is None:
                 continue
-            eq_t = "-" if not v["time_meaningful"] else (
+            eq_t = f"{_f(v['peer_best'])} (error only)" if not v["time_meaningful"] else (
                 "no image yet" if v["eq_time_peer_error"] is None
                 else f"{_f(v['eq_time_peer_error'])} ({v['eq_time_ratio']:.2f}x)")
             eq_e = "-" if not v["time_meaningful"] else (
@@ -1564,11 +1564,15 @@ def _extra(v) -> str:
 # ---------------------------------------------------------------------------------------------
 
 
-def _git_commit() -> str:
+def _git_commit(out: Path | None = None) -> str:
+    """HEAD, and whether tracked files differ from it (the report's own output aside)."""
     try:
         rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT,
                              capture_output=True, text=True, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"],
+        spec = ["--", "."]
+        if out is not None and out.resolve().is_relative_to(ROOT):
+            spec.append(f":!{out.resolve().relative_to(ROOT)}")
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", *spec],
                                cwd=ROOT, capture_output=True, text=True, check=True).stdout
         return f"{rev}{' + uncommitted changes' if dirty.strip() else ''}"
     except (OSError, subprocess.CalledProcessError):
@@ -1668,12 +1672,13 @@ def main(argv: list[str] | None = None) -> int:
     data["meta"] = {
         "command": "python -m tools.report" + ("" if mode == "full" else
                                                    (" --quick" if mode == "quick"
-                                                    else f" --profile {mode}")),
+                                                    else f" --profile {mode}"))
+                   + (f" --scenes {args.scenes}" if args.scenes else ""),
         "profile": mode, "date": datetime.datetime.now().strftime("%Y-%m-%d %H:%M"),
         "machine": f"{platform.machine()}, {os.cpu_count()} cores, Python "
                    f"{platform.python_version()}, load {load_start:.1f} at the start, "
                    f"{load:.1f} at the end (1-minute average)",
-        "commit": _git_commit(), "resolution": list(res), "repeats": prof["repeats"],
+        "commit": _git_commit(out), "resolution": list(res), "repeats": prof["repeats"],
         "seconds": time.perf_counter() - t_start,
     }
     (out / "results.json").write_text(json.dumps(data, indent=1, default=_json_default))
