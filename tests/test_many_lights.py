@@ -140,7 +140,7 @@ PEAK_LIGHTS = 100  # the suite's frame; `python -m tools.bench --lights 300` the
 
 def test_many_point_lights_frame_stays_within_two_gb():
     """One frame (default settings, 256x256) of PEAK_LIGHTS point lights in a fresh process:
-    peak resident memory (ru_maxrss) at most 2 GB. Without the budgets each light kept a
+    peak resident memory (VmHWM) at most 2 GB. Without the budgets each light kept a
     48 MiB cube shadow map and 9 MiB of RSM flux (100 lights: 5.7 GB)."""
     proc = subprocess.run([sys.executable, "-m", "tools.bench", "--lights", str(PEAK_LIGHTS),
                            "--json"], cwd=ROOT, capture_output=True, text=True, timeout=900,
