@@ -112,20 +112,23 @@ res = {"view_" + k.replace(" ", "_"): v for k, v in view.items()}
 scene.lpv.antialias = 1  # F12 with the viewport's one sample per pixel
 scene.render.filepath = os.path.join(tmp, "f12_aa1", "still.exr")
 bpy.ops.render.render(write_still=True)
-off = gpu.types.GPUOffScreen(w, h, format="RGBA32F")
-with off.bind():
-    fb = gpu.state.active_framebuffer_get()
-    fb.clear(color=(0, 0, 0, 0))
-    with gpu.matrix.push_pop(), gpu.matrix.push_pop_projection():
-        gpu.matrix.load_identity()
-        gpu.matrix.load_projection_matrix(Matrix.Translation((-1, -1, 0))
-                                          @ Matrix.Diagonal((2 / w, 2 / h, 1, 1)))
-        from gpu_extras.presets import draw_texture_2d
-        draw_texture_2d(rendered.image_texture(view["Combined"]), (0, 0), w, h)
-    buf = fb.read_color(0, 0, w, h, 4, 0, "FLOAT")
-off.free()
-buf.dimensions = w * h * 4
-res["drawn"] = np.array(buf.to_list(), np.float32).reshape(h, w, 4)[::-1]
+def offscreen(draw):  # what draw() draws into a w x h float buffer, top row first
+    off = gpu.types.GPUOffScreen(w, h, format="RGBA32F")
+    with off.bind():
+        fb = gpu.state.active_framebuffer_get()
+        fb.clear(color=(0, 0, 0, 0))
+        with gpu.matrix.push_pop(), gpu.matrix.push_pop_projection():
+            gpu.matrix.load_identity()
+            gpu.matrix.load_projection_matrix(Matrix.Translation((-1, -1, 0))
+                                              @ Matrix.Diagonal((2 / w, 2 / h, 1, 1)))
+            draw()
+        buf = fb.read_color(0, 0, w, h, 4, 0, "FLOAT")
+    off.free()
+    buf.dimensions = w * h * 4
+    return np.array(buf.to_list(), np.float32).reshape(h, w, 4)[::-1]
+from gpu_extras.presets import draw_texture_2d
+res["drawn"] = offscreen(
+    lambda: draw_texture_2d(rendered.image_texture(view["Combined"]), (0, 0), w, h))
 
 # View.draw as view_draw calls it, with the region's size and matrices (no window headless)
 # and the two RenderEngine methods it uses: request, polled redraws, the image drawn.
@@ -140,20 +143,9 @@ ctx = SimpleNamespace(region=SimpleNamespace(width=w, height=h), region_data=Sim
     view_matrix=cam.matrix_world.inverted(), window_matrix=cam.calc_matrix_camera(dg, x=w, y=h)))
 view_state, engine, requests = rendered.View(), Engine(), []
 def view_draw():
-    off = gpu.types.GPUOffScreen(w, h, format="RGBA32F")
-    with off.bind():
-        fb = gpu.state.active_framebuffer_get()
-        fb.clear(color=(0, 0, 0, 0))
-        with gpu.matrix.push_pop(), gpu.matrix.push_pop_projection():
-            gpu.matrix.load_identity()
-            gpu.matrix.load_projection_matrix(Matrix.Translation((-1, -1, 0))
-                                              @ Matrix.Diagonal((2 / w, 2 / h, 1, 1)))
-            view_state.draw(engine, ctx, dg)
-        buf = fb.read_color(0, 0, w, h, 4, 0, "FLOAT")
-    off.free()
+    img = offscreen(lambda: view_state.draw(engine, ctx, dg))
     requests.append(view_state.pending is not None)
-    buf.dimensions = w * h * 4
-    return np.array(buf.to_list(), np.float32).reshape(h, w, 4)[::-1]
+    return img
 for _ in range(1200):
     res["view_draw"] = view_draw()
     if view_state.image is not None:
