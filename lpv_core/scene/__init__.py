@@ -16,7 +16,9 @@ from .model import (
     orthographic_matrix,
     perspective_matrix,
 )
+from .textures import Texture
+from .world import World
 
 __all__ = ["AREA_TYPES", "LIGHT_TYPES", "Area", "Camera", "GISettings", "Light", "Material",
            "Scene", "cross3", "look_at_matrix", "make_scene", "orthographic_matrix",
-           "perspective_matrix"]
+           "perspective_matrix", "Texture", "World"]

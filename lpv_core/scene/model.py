@@ -13,15 +13,26 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .textures import Texture
+from .world import World
+
 LIGHT_TYPES = ("POINT", "SPOT", "SUN", "AREA")
 
 
 @dataclass
 class Material:
-    """A diffuse material as LPV sees it (albedo; GI bleed colour and flags come later)."""
+    """A material as LPV sees it: the diffuse albedo Cycles reports as Diffuse Color (times
+    ``texture`` at each point's UV where set, and the corner colours where the scene has
+    them), the radiance it emits, and the artist's GI bleed overrides."""
 
     name: str
     albedo: np.ndarray = field(default_factory=lambda: np.full(3, 0.8, np.float32))
+    # Image the albedo is multiplied by per point (Scene.uvs), None: the albedo alone.
+    texture: Texture | None = None
+    # Emitted radiance (W sr^-1 m^-2 per unit colour: Emission colour x Strength, Cycles'
+    # units) and the GI intensity of that light, like a light's.
+    emission: np.ndarray = field(default_factory=lambda: np.zeros(3, np.float32))
+    emission_gi_intensity: float = 1.0
     # Colour and strength this material bounces into GI (None: use albedo).
     bleed_color: np.ndarray | None = None
     bleed_intensity: float = 1.0
@@ -53,6 +64,9 @@ class Light:
     gi_intensity: float = 1.0
     gi_color: np.ndarray = field(default_factory=lambda: np.ones(3, np.float32))  # GI tint
     cast_shadow: bool = True
+    shape: str = "SQUARE"  # area light: SQUARE, RECTANGLE, DISK or ELLIPSE
+    spread: float = np.pi  # area light: Blender's spread angle (rad)
+    angle: float = 0.0  # sun: angular diameter (rad)
 
     @property
     def position(self) -> np.ndarray:
@@ -280,6 +294,11 @@ class Scene:
     occluder: np.ndarray | None = None
     receiver: np.ndarray | None = None
     areas: list[Area] = field(default_factory=list)
+    # Per-corner texture coordinates (T, 3, 2) float32 (materials with a texture read them)
+    # and colours (T, 3, 3) float32 multiplying the albedo (Color Attribute); None: none.
+    uvs: np.ndarray | None = None
+    corner_colors: np.ndarray | None = None
+    world: World | None = None
 
     def flag(self, name: str) -> np.ndarray:
         """Per-triangle bool array for 'caster', 'occluder' or 'receiver' (default all True)."""
@@ -336,6 +355,9 @@ def make_scene(
     occluder=None,
     receiver=None,
     areas=None,
+    uvs=None,
+    corner_colors=None,
+    world=None,
 ) -> Scene:
     """Build a validated Scene from loose arrays: bad triangles are dropped and counted.
 
@@ -390,6 +412,13 @@ def make_scene(
             if arr.shape != (t,):
                 raise ValueError(f"{fname} flags have shape {arr.shape}, expected ({t},)")
             flags[fname] = np.ascontiguousarray(arr[keep])
+    corners = {}
+    for cname, cvalue, width in (("uvs", uvs, 2), ("corner_colors", corner_colors, 3)):
+        if cvalue is not None:
+            arr = np.asarray(cvalue, np.float32).reshape(-1, 3, width)
+            if arr.shape[0] != t:
+                raise ValueError(f"{cname} describe {arr.shape[0]} triangles, positions {t}")
+            corners[cname] = np.ascontiguousarray(arr[keep])
     lights, areas = _valid_lights(lights or [], dropped), _valid_areas(areas or [], dropped)
     materials = _repaired_all(materials, "materials", _MATERIAL_LOWS, dropped)
     return Scene(
@@ -405,13 +434,16 @@ def make_scene(
         object_index=None if obj is None else np.ascontiguousarray(obj[keep]),
         object_names=list(object_names or []),
         dropped=dropped,
+        world=world,
+        **corners,
     )
 
 
 # Per field, the lowest value make_scene keeps (None: any finite value).
 _LIGHT_LOWS = {"color": 0.0, "gi_color": 0.0, "gi_intensity": None, "spot_size": 0.0,
-               "spot_blend": 0.0, "radius": 0.0, "size": 0.0}
-_MATERIAL_LOWS = {"albedo": 0.0, "bleed_color": 0.0, "bleed_intensity": 0.0}
+               "spot_blend": 0.0, "radius": 0.0, "size": 0.0, "spread": 0.0, "angle": 0.0}
+_MATERIAL_LOWS = {"albedo": 0.0, "bleed_color": 0.0, "bleed_intensity": 0.0, "emission": 0.0,
+                  "emission_gi_intensity": None}
 _AREA_LOWS = {"falloff": 0.0, "intensity": 0.0, "tint": 0.0}
 
 
