@@ -31,6 +31,7 @@ def warning_lines(stats: dict) -> list[str]:
     lines = unmodelled_warnings(dropped)
     lines += [f"left out: {n} {key.replace('_', ' ')}" for key, n in sorted(dropped.items())
               if n and key not in ("world_lighting_ignored", "emissive_materials_ignored")]
+    lines += [f"approximated: {line}" for line in stats.get("info", {}).get("approximated", [])]
     return lines + [f"{s['what']}: {s['reason']}" for s in stats.get("skipped", [])
                     if s["stage"] in ("lpv", "resolution")]
 

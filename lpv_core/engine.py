@@ -374,6 +374,8 @@ class Engine:
 
         stats = stats or Stats()
         stats.dropped.update(scene.dropped)
+        if scene.approximated:
+            stats.info["approximated"] = list(scene.approximated)
         settings = scene.settings
         t0 = time.perf_counter()
         if scene.triangle_count == 0:

@@ -71,6 +71,7 @@ def save_scene(path: str, scene: Scene) -> None:
         "settings": scene.settings.as_dict(),
         "object_names": list(scene.object_names),
         "dropped": dict(scene.dropped),
+        "approximated": list(scene.approximated),
         "camera": None if scene.camera is None else _as_json(scene.camera),
     }
     arrays["meta"] = np.array(json.dumps(meta))
@@ -114,7 +115,8 @@ def load_scene(path: str) -> Scene:
         positions=data["positions"], normals=data["normals"],
         material_index=data["material_index"], materials=materials, lights=lights,
         camera=camera, settings=settings, object_names=meta["object_names"],
-        dropped=meta["dropped"], areas=areas, **opt,
+        dropped=meta["dropped"], areas=areas, approximated=meta.get("approximated", []),
+        **opt,
     )
 
 

@@ -299,6 +299,10 @@ class Scene:
     uvs: np.ndarray | None = None
     corner_colors: np.ndarray | None = None
     world: World | None = None
+    # What the extraction or make_scene approximated, one line each naming the object or
+    # material and what was done (an unsupported shader, a missing image...): the stats and
+    # the UI show them.
+    approximated: list[str] = field(default_factory=list)
 
     def flag(self, name: str) -> np.ndarray:
         """Per-triangle bool array for 'caster', 'occluder' or 'receiver' (default all True)."""
