@@ -244,6 +244,10 @@ def test_missing_camera_is_a_clear_error():
 # ---------------------------------------------------------------------------- materials
 
 
+# Principled's diffuse under its dielectric layer at IOR 1.5: 1 - F0 (test_materials.py).
+PRINCIPLED = 1.0 - 0.04
+
+
 def test_material_albedo_sources_and_per_triangle_assignment():
     principled, p = material("principled")
     p.inputs["Base Color"].default_value = (0.2, 0.4, 0.6, 1)
@@ -271,8 +275,8 @@ def test_material_albedo_sources_and_per_triangle_assignment():
     on_cube = s.object_index == s.object_names.index("cube")
     per_face = albedo[on_cube].reshape(6, 2, 3)[:, 0]
     grey = [0.8, 0.8, 0.8]
-    assert np.allclose(per_face, [[0.2, 0.4, 0.6], [0.9, 0.1, 0.3], grey, grey,
-                                  [0.2, 0.4, 0.6], [0.2, 0.4, 0.6]], atol=1e-6)
+    base = np.array([0.2, 0.4, 0.6]) * PRINCIPLED
+    assert np.allclose(per_face, [base, [0.9, 0.1, 0.3], grey, grey, base, base], atol=1e-6)
     assert np.allclose(albedo[s.object_index == s.object_names.index("bare")], grey)
 
 
@@ -287,19 +291,21 @@ def test_textured_base_color_is_the_image_mean():
     tex = mat.node_tree.nodes.new("ShaderNodeTexImage")
     tex.image = img
     mat.node_tree.links.new(tex.outputs["Color"], p.inputs["Base Color"])
-    assert np.allclose(extract.material_albedo(mat), [0.5, 0.0, 0.25], atol=1e-6)
+    assert np.allclose(extract.material_albedo(mat), np.array([0.5, 0.0, 0.25]) * PRINCIPLED,
+                       atol=1e-6)
     # Byte images hold sRGB-encoded values: the mean is taken after linearising.
     byte = bpy.data.images.new("grey", 2, 2)
     byte.pixels.foreach_set(np.full(16, 0.5, np.float32))
     tex.image = byte
     stored = np.array(byte.pixels[:3])
     linear = np.where(stored <= 0.04045, stored / 12.92, ((stored + 0.055) / 1.055) ** 2.4)
-    assert np.allclose(extract.material_albedo(mat), linear, atol=1e-5)
+    assert np.allclose(extract.material_albedo(mat), linear * PRINCIPLED, atol=1e-5)
     # A linked non-image node: the socket's own default value.
     p.inputs["Base Color"].default_value = (0.3, 0.3, 0.1, 1)
     noise = mat.node_tree.nodes.new("ShaderNodeTexNoise")
     mat.node_tree.links.new(noise.outputs["Color"], p.inputs["Base Color"])
-    assert np.allclose(extract.material_albedo(mat), [0.3, 0.3, 0.1], atol=1e-6)
+    assert np.allclose(extract.material_albedo(mat), np.array([0.3, 0.3, 0.1]) * PRINCIPLED,
+                       atol=1e-6)
 
 
 def test_mix_shader_and_fallbacks():
@@ -311,10 +317,10 @@ def test_mix_shader_and_fallbacks():
     links.new(a.outputs[0], p.inputs[1])
     links.new(b.outputs[0], p.inputs[2])
     p.inputs["Fac"].default_value = 0.25
-    assert np.allclose(extract.material_albedo(mat), [0.75, 0, 0.25], atol=1e-6)
+    assert np.allclose(extract.material_albedo(mat), [0.75, 0, 0.25 * PRINCIPLED], atol=1e-6)
     emit, _ = material("emit", "ShaderNodeEmission")
-    emit.diffuse_color = (0.1, 0.2, 0.3, 1)
-    assert np.allclose(extract.material_albedo(emit), [0.1, 0.2, 0.3], atol=1e-6)
+    emit.diffuse_color = (0.1, 0.2, 0.3, 1)  # not the viewport colour: no diffuse, as Cycles
+    assert np.allclose(extract.material_albedo(emit), 0.0, atol=1e-6)
     assert np.allclose(extract.material_albedo(None), [0.8, 0.8, 0.8])
 
 

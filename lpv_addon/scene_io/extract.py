@@ -15,6 +15,13 @@ import bpy
 import numpy as np
 
 from .._core import core
+from .materials import (  # noqa: F401 - re-exported: the material half of the extraction
+    DEFAULT_ALBEDO,
+    image_mean_color,
+    material_albedo,
+    material_emits,
+    material_info,
+)
 
 MESH_LIKE = frozenset({"MESH", "CURVE", "SURFACE", "FONT", "META"})
 # Object types with geometry we cannot triangulate (hair curves, point clouds, volumes, ...).
@@ -24,9 +31,6 @@ SCENE_SETTINGS = (
     "grid_resolution", "cascades", "cascades_auto", "rsm_resolution",
     "occlusion", "bounces", "backend", "intensity", "antialias",
 )
-DEFAULT_ALBEDO = (0.8, 0.8, 0.8)
-# Large images are subsampled to about this many pixels for their mean colour.
-_IMAGE_MEAN_PIXELS = 1 << 20
 
 
 class _Timer:
@@ -115,8 +119,9 @@ def extract_scene(
         result = core.scene.make_scene(
             positions, normals, mat_index, geo.materials, lights, camera, settings,
             object_index=obj_index, object_names=geo.object_names, areas=areas,
-            **geo.flags(obj_index),
+            **geo.flags(obj_index), **geo.corner_arrays(),
         )
+    result.approximated.extend(geo.approximated)
     for key, value in dropped.items():
         result.dropped[key] = result.dropped.get(key, 0) + value
     # Light sources the LPV does not model: counted, so stats and the CLI can say so.
@@ -153,31 +158,6 @@ def world_emits(world) -> bool:
     return float(strength.default_value) > 0 and float(max(colour.default_value[:3])) > 0
 
 
-def material_emits(mat) -> bool:
-    """Whether a material's surface shader emits (Emission node, or a Principled BSDF with
-    emission strength > 0 and a non-black emission colour)."""
-    tree = getattr(mat, "node_tree", None)
-    if tree is None:
-        return False
-    for node in tree.nodes:
-        if node.mute:
-            continue
-        if node.bl_idname == "ShaderNodeEmission":
-            if any(o.is_linked for o in node.outputs):  # feeds the shader tree
-                strength = node.inputs["Strength"]
-                if strength.is_linked or float(strength.default_value) > 0:
-                    return True
-        elif node.bl_idname == "ShaderNodeBsdfPrincipled":
-            strength = node.inputs.get("Emission Strength")
-            colour = node.inputs.get("Emission Color")
-            if strength is None or colour is None:
-                continue
-            if (strength.is_linked or float(strength.default_value) > 0) and (
-                    colour.is_linked or float(max(colour.default_value[:3])) > 0):
-                return True
-    return False
-
-
 def _visible(inst, ob, render_visibility: bool) -> bool:
     """What Cycles shows (show_self), and with ``render_visibility`` also what renders."""
     if not inst.show_self:
@@ -209,21 +189,29 @@ class _GeometryCollector:
         self.materials: list = []
         self.emissive: list = []  # names of materials that emit light (not modelled)
         self._material_ids: dict = {}
-        self._image_means: dict = {}
+        self.infos: list = []  # materials.MaterialInfo per material
+        self.approximated: list[str] = []
         self.object_names: list[str] = []
         self._object_ids: dict[str, int] = {}
         self.object_flags: list[tuple[bool, bool, bool]] = []  # caster, occluder, receiver
 
     def add(self, ob, matrix: np.ndarray, count) -> None:
         """Add one evaluated mesh-like object instance with its world matrix."""
-        local = self._local_arrays(ob)
+        with self.timer.phase("materials"):
+            table = self._slot_table(ob)
+            infos = [self.infos[i] for i in table]
+            uv_maps = tuple(sorted({i.uv_map for i in infos if i.uv_map is not None}))
+            colors = tuple(sorted({i.color_attribute for i in infos
+                                   if i.color_attribute is not None}))
+        local = self._local_arrays(ob, uv_maps, colors)
         if local is None or local[0].shape[0] == 0:
             count("objects_without_geometry")
             return
-        pos, nrm, slot_index = local
+        pos, nrm, slot_index, layers = local
         with self.timer.phase("materials"):
-            table = self._slot_table(ob)
-            mat = np.take(table, np.minimum(slot_index, len(table) - 1))  # Blender clamps
+            slot = np.minimum(slot_index, len(table) - 1)  # Blender clamps
+            mat = np.take(table, slot)
+            uvs, cols = self._corners(ob, infos, slot, layers, uv_maps, colors)
         if _degenerate(matrix):
             count("objects_degenerate_transform")
             return
@@ -231,10 +219,50 @@ class _GeometryCollector:
         if oid == len(self.object_names):
             self.object_names.append(ob.name)
             self.object_flags.append(object_gi_flags(ob))
-        self.chunks.append((pos, nrm, matrix, mat, oid))
+        self.chunks.append((pos, nrm, matrix, mat, oid, uvs, cols))
 
-    def _local_arrays(self, ob):
+    def _corners(self, ob, infos, slot, layers, uv_maps, colors):
+        """Per-corner UVs (T, 3, 2) (each slot's material's UV map and Mapping) and colours
+        (T, 3, 3) of one object, None where no material of it reads them."""
+        uvs = np.zeros(slot.shape + (3, 2), np.float32) if uv_maps else None
+        cols = np.ones(slot.shape + (3, 3), np.float32) if colors else None
+        for k, info in enumerate(infos):
+            if info.uv_map is None and info.color_attribute is None:
+                continue
+            sel = slot == k
+            if not sel.any():
+                continue
+            name = info.material.name
+            if info.uv_map is not None:
+                uv = layers.get(("uv", info.uv_map))
+                if uv is None:
+                    self._note(f"material '{name}' on object '{ob.name}': UV map "
+                               f"'{info.uv_map or 'render'}' is missing: UV (0, 0)")
+                else:
+                    uv = uv[sel]
+                    if info.uv_transform is not None:
+                        a = info.uv_transform.astype(np.float32)
+                        uv = uv @ a[:2, :2].T + a[:2, 2]
+                    uvs[sel] = uv
+            if info.color_attribute is not None:
+                col = layers.get(("color", info.color_attribute))
+                if col is None:
+                    self._note(f"material '{name}' on object '{ob.name}': colour attribute "
+                               f"'{info.color_attribute or 'render'}' is missing: black, as "
+                               "Cycles reads it")
+                    cols[sel] = 0.0
+                else:
+                    cols[sel] = col[sel]
+        return uvs, cols
+
+    def _note(self, line: str) -> None:
+        if line not in self.approximated:
+            self.approximated.append(line)
+
+    def _local_arrays(self, ob, uv_maps=(), colors=()):
         key = ob.data.as_pointer() if ob.type == "MESH" and ob.data is not None else None
+        if key is not None:
+            key = (key, uv_maps, colors)
         if key is not None and key in self.cache:
             return self.cache[key]
         with self.timer.phase("mesh_eval"):
@@ -243,7 +271,11 @@ class _GeometryCollector:
             except RuntimeError as exc:
                 raise ValueError(f"object '{ob.name}': cannot evaluate its mesh ({exc})") from exc
         try:
-            arrays = None if mesh is None else mesh_arrays(mesh, self.timer)
+            layers: dict = {}
+            arrays = None if mesh is None else mesh_arrays(
+                mesh, self.timer, uv_maps=uv_maps, color_attributes=colors, corners=layers)
+            if arrays is not None:
+                arrays = (*arrays, layers)
         finally:
             with self.timer.phase("mesh_eval"):
                 ob.to_mesh_clear()
@@ -259,15 +291,14 @@ class _GeometryCollector:
         key = None if mat is None else mat.original.session_uid
         mid = self._material_ids.get(key)
         if mid is None:
-            if mat is None:
-                m = core.scene.Material("(none)", np.array(DEFAULT_ALBEDO, np.float32))
-            else:
-                m = core.scene.Material(mat.name, material_albedo(mat, self._image_means))
-                _apply_bleed(m, mat)
-                if material_emits(mat):
-                    self.emissive.append(mat.name)
+            info = material_info(mat)
+            if mat is not None and info.material.emission.any():
+                self.emissive.append(mat.name)
+            for line in info.notes:
+                self._note(line)
             mid = self._material_ids[key] = len(self.materials)
-            self.materials.append(m)
+            self.materials.append(info.material)
+            self.infos.append(info)
         return mid
 
     def flags(self, object_index: np.ndarray) -> dict:
@@ -289,17 +320,39 @@ class _GeometryCollector:
             pos = np.empty((total, 3, 3), np.float64)
             nrm = np.empty((total, 3, 3), np.float32)
             start = 0
-            for (p, n, matrix, _, _), size in zip(self.chunks, sizes):
+            for (p, n, matrix, *_), size in zip(self.chunks, sizes):
                 _to_world(p, n, matrix, pos[start:start + size], nrm[start:start + size])
                 start += size
             mat = np.concatenate([c[3] for c in self.chunks] or [np.zeros(0, np.int32)])
             oids = np.array([c[4] for c in self.chunks], np.int32)
             return pos, nrm, mat, np.repeat(oids, sizes)
 
+    def corner_arrays(self) -> dict:
+        """{"uvs": (T, 3, 2), "corner_colors": (T, 3, 3)} for make_scene, each only where some
+        material reads it (UV 0 and colour 1 elsewhere); corners swapped like the positions
+        of mirrored instances."""
+        out = {}
+        for slot, name, fill, width in ((5, "uvs", 0.0, 2), (6, "corner_colors", 1.0, 3)):
+            if all(c[slot] is None for c in self.chunks):
+                continue
+            parts = []
+            for c in self.chunks:
+                arr = c[slot]
+                if arr is None:
+                    arr = np.full((len(c[3]), 3, width), fill, np.float32)
+                elif np.isfinite(c[2]).all() and np.linalg.det(c[2][:3, :3]) < 0:
+                    arr = arr[:, [0, 2, 1]]
+                parts.append(arr)
+            out[name] = np.concatenate(parts)
+        return out
 
-def mesh_arrays(mesh: bpy.types.Mesh, timer: _Timer | None = None):
+
+def mesh_arrays(mesh: bpy.types.Mesh, timer: _Timer | None = None, *, uv_maps=(),
+                color_attributes=(), corners: dict | None = None):
     """Local (positions (T,3,3), corner normals (T,3,3), slot index (T,)) of a mesh; tri/quad
-    meshes are split in numpy (the RNA ``loop_triangles`` read is slow: n-gons only)."""
+    meshes are split in numpy (the RNA ``loop_triangles`` read is slow: n-gons only).
+    ``corners`` gets {("uv", name): (T,3,2), ("color", name): (T,3,3)} for the UV maps and
+    colour attributes named ("" the render one; missing ones left out)."""
     timer = timer or _Timer(None)
     with timer.phase("triangles"):
         mesh.calc_loop_triangles()
@@ -332,6 +385,9 @@ def mesh_arrays(mesh: bpy.types.Mesh, timer: _Timer | None = None):
         else:
             cn = _read(mesh.corner_normals, "vector", 3 * n_loop, np.float32)
             nrm = np.take(cn.reshape(-1, 3), loops, axis=0)
+    if corners is not None and (uv_maps or color_attributes):
+        with timer.phase("corners"):
+            corners.update(corner_layers(mesh, loops, tri_verts, uv_maps, color_attributes))
     with timer.phase("materials"):
         attr = mesh.attributes.get("material_index")
         if attr is not None and attr.domain == "FACE" and attr.data_type == "INT":
@@ -340,6 +396,36 @@ def mesh_arrays(mesh: bpy.types.Mesh, timer: _Timer | None = None):
         else:
             slot = np.zeros(t, np.int32)
     return pos, nrm, slot
+
+
+def corner_layers(mesh, loops: np.ndarray, tri_verts: np.ndarray, uv_maps, colors) -> dict:
+    """Per-triangle-corner UVs and scene-linear colours of the named UV maps and colour
+    attributes ("" the active render one), read with foreach_get."""
+    out = {}
+    n_loop = len(mesh.loops)
+    for name in uv_maps:
+        layer = (next((u for u in mesh.uv_layers if u.active_render), None) if name == ""
+                 else mesh.uv_layers.get(name))
+        if layer is not None:
+            uv = _read(layer.uv, "vector", 2 * n_loop, np.float32).reshape(-1, 2)
+            out[("uv", name)] = np.take(uv, loops, axis=0)
+    attrs = mesh.color_attributes
+    for name in colors:
+        attr = None
+        if name == "":
+            i = attrs.render_color_index
+            attr = attrs[i] if 0 <= i < len(attrs) else None
+        else:
+            attr = attrs.get(name)
+        if attr is None or attr.domain not in ("CORNER", "POINT"):
+            continue
+        n = len(attr.data)
+        col = _read(attr.data, "color", 4 * n, np.float32).reshape(-1, 4)[:, :3]
+        index = loops if attr.domain == "CORNER" else tri_verts
+        with np.errstate(invalid="ignore"):
+            col = np.where(np.isfinite(col), np.maximum(col, 0.0), 0.0)
+        out[("color", name)] = np.take(col, index, axis=0)
+    return out
 
 
 def _read(collection, prop: str, n: int, dtype) -> np.ndarray:
@@ -443,37 +529,6 @@ def _to_world(pos, nrm, matrix: np.ndarray, out_pos: np.ndarray, out_nrm: np.nda
 # -------------------------------------------------------------------------------- materials
 
 
-def material_albedo(mat: bpy.types.Material | None, image_cache: dict | None = None) -> np.ndarray:
-    """Diffuse albedo (linear RGB) from the BSDF on the active output's Surface (Principled,
-    Diffuse, Mix/Add; a linked image gives its mean), else the viewport ``diffuse_color``."""
-    if mat is None:
-        return np.array(DEFAULT_ALBEDO, np.float32)
-    fallback = np.array(mat.diffuse_color[:3], np.float32)
-    tree = getattr(mat, "node_tree", None)
-    if tree is None or (bpy.app.version < (5, 0, 0) and not mat.use_nodes):
-        return fallback
-    output = _active_output(tree)
-    if output is None:
-        return fallback
-    surface = output.inputs.get("Surface")
-    if surface is None or not surface.is_linked:
-        return fallback
-    cache = {} if image_cache is None else image_cache
-    color = _shader_albedo(_link_source(surface), fallback, cache, depth=0)
-    return np.clip(np.asarray(color, np.float32), 0.0, None)
-
-
-def _active_output(tree):
-    outputs = [n for n in tree.nodes if n.bl_idname == "ShaderNodeOutputMaterial"]
-    for node in outputs:
-        if node.is_active_output and node.target in ("ALL", "CYCLES"):
-            return node
-    for node in outputs:
-        if node.is_active_output:
-            return node
-    return outputs[0] if outputs else None
-
-
 def _link_source(socket):
     """(node, output socket) feeding an input socket, through reroutes; None if unlinked."""
     for _ in range(64):
@@ -487,83 +542,6 @@ def _link_source(socket):
             return node, link.from_socket
         socket = node.inputs[0]
     return None
-
-
-def _shader_albedo(source, fallback, cache, depth):
-    if source is None:
-        return np.zeros(3, np.float32)  # an unlinked shader input is black
-    node, _ = source
-    if depth > 16 or node.mute:
-        return fallback
-    kind = node.bl_idname
-    if kind == "ShaderNodeBsdfPrincipled":
-        return _color_input(node.inputs["Base Color"], cache)
-    if kind == "ShaderNodeBsdfDiffuse":
-        return _color_input(node.inputs["Color"], cache)
-    if kind in ("ShaderNodeMixShader", "ShaderNodeAddShader"):
-        shaders = [s for s in node.inputs if s.type == "SHADER"]
-        a = _shader_albedo(_link_source(shaders[0]), fallback, cache, depth + 1)
-        b = _shader_albedo(_link_source(shaders[1]), fallback, cache, depth + 1)
-        if kind == "ShaderNodeAddShader":
-            return a + b
-        fac_socket = node.inputs[0]
-        fac = 0.5 if fac_socket.is_linked else float(np.clip(fac_socket.default_value, 0, 1))
-        return (1.0 - fac) * a + fac * b
-    return fallback
-
-
-def _color_input(socket, cache) -> np.ndarray:
-    """A colour socket's value: its default, or the mean of a linked image / RGB node."""
-    default = np.array(socket.default_value[:3], np.float32)
-    source = _link_source(socket)
-    if source is None:
-        return default
-    node, out = source
-    if node.bl_idname == "ShaderNodeTexImage" and node.image is not None:
-        mean = image_mean_color(node.image, cache)
-        return default if mean is None else mean
-    if node.bl_idname == "ShaderNodeRGB":
-        return np.array(out.default_value[:3], np.float32)
-    return default
-
-
-def image_mean_color(image: bpy.types.Image, cache: dict | None = None) -> np.ndarray | None:
-    """Mean linear RGB of an image's pixels (sRGB byte images linearised); None if empty."""
-    key = image.original.session_uid if image.original is not None else image.name
-    if cache is not None and key in cache:
-        return cache[key]
-    mean = None
-    w, h = image.size[:]
-    channels = image.channels
-    if w > 0 and h > 0 and channels >= 3:
-        px = np.empty(w * h * channels, np.float32)
-        image.pixels.foreach_get(px)
-        px = px.reshape(-1, channels)[:, :3]
-        step = max(1, px.shape[0] // _IMAGE_MEAN_PIXELS)
-        px = px[::step].astype(np.float64)
-        if not image.is_float and image.colorspace_settings.name == "sRGB":
-            px = _srgb_to_linear(px)
-        finite = np.isfinite(px).all(axis=1)
-        if finite.any():
-            mean = px[finite].mean(axis=0).astype(np.float32)
-    if cache is not None:
-        cache[key] = mean
-    return mean
-
-
-def _srgb_to_linear(c: np.ndarray) -> np.ndarray:
-    c = np.clip(c, 0.0, None)
-    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
-
-
-def _apply_bleed(m, mat) -> None:
-    """Material.lpv: bleed colour (when used) and bleed intensity into the core material."""
-    props = getattr(mat, "lpv", None)
-    if props is None or not hasattr(props, "bleed_intensity"):
-        return
-    if props.use_bleed_color:
-        m.bleed_color = np.array(props.bleed_color[:3], np.float32)
-    m.bleed_intensity = float(props.bleed_intensity)
 
 
 # ------------------------------------------------------------------------------- GI flags

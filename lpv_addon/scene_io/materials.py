@@ -1,0 +1,596 @@
+"""Blender material -> core Material: the diffuse albedo Cycles reports as Diffuse Color, the
+image it is textured with, the UV map and colour attribute it reads, and what it emits.
+
+The rule (measured against Cycles 5.0's Diffuse Color pass, docs/algorithm.md "Materials"):
+Principled = base colour x (1 - metallic) x (1 - transmission) x alpha x (1 - F0 x specular
+tint) x mix(1, coat tint, coat) x (1 - 0.04 coat), F0 = ((ior - 1) / (ior + 1))^2 x 2 x
+specular IOR level (the dielectric layer's reflectance at normal incidence); Diffuse,
+Translucent, Subsurface Scattering and Toon: their colour; Mix Shader: the weighted sum, Add
+Shader the sum; Emission, Glossy, Glass, Refraction, Transparent, Metallic: 0. Node groups,
+reroutes and muted nodes (their internal links) are followed as Blender evaluates them.
+
+Textures are read once per content digest and kept in a bounded cache across extractions, so
+changing one image re-reads only that image. Budget: at most ``TEXTURE_BUDGET`` (1024^2)
+pixels per image; larger images are box-filtered down by a whole factor per axis.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import os
+import sys
+from collections import OrderedDict
+from dataclasses import dataclass, field
+
+import bpy
+import numpy as np
+
+from .._core import core
+
+DEFAULT_ALBEDO = (0.8, 0.8, 0.8)
+MAGENTA = (1.0, 0.0, 1.0)  # what Cycles shows for a missing image
+TEXTURE_BUDGET = 1 << 20  # pixels per image after resampling
+_CACHE_PIXELS = 64 << 20  # cached texture pixels across extractions (about 768 MB float32)
+# Blender's colour -> float socket conversion: Rec.709 luminance (measured: a magenta image on
+# Metallic gives metallic 0.2848 in Cycles).
+_LUMA = np.array([0.2126, 0.7152, 0.0722])
+# Shaders with no diffuse closure (Cycles' Diffuse Color pass is 0 on them).
+NO_DIFFUSE = frozenset({
+    "ShaderNodeEmission", "ShaderNodeBsdfGlossy", "ShaderNodeBsdfAnisotropic",
+    "ShaderNodeBsdfGlass", "ShaderNodeBsdfRefraction", "ShaderNodeBsdfTransparent",
+    "ShaderNodeBsdfMetallic", "ShaderNodeHoldout", "ShaderNodeBsdfRayPortal",
+    "ShaderNodeBackground", "ShaderNodeBsdfHair", "ShaderNodeBsdfHairPrincipled",
+})
+DIFFUSE_COLOR = frozenset({  # shaders whose Color input is their Diffuse Color
+    "ShaderNodeBsdfDiffuse", "ShaderNodeBsdfTranslucent", "ShaderNodeSubsurfaceScattering",
+})
+
+_textures: OrderedDict[str, np.ndarray] = OrderedDict()  # image digest -> (H, W, 4) pixels
+
+
+@dataclass
+class MaterialInfo:
+    """A core Material and what the mesh must supply for it: ``uv_map`` (None: no texture;
+    "": the mesh's active render UV map), ``uv_transform`` (3x3 affine on (u, v, 1), a Mapping
+    node) and ``color_attribute`` (None: none; "": the render colour attribute)."""
+
+    material: core.scene.Material
+    uv_map: str | None = None
+    uv_transform: np.ndarray | None = None
+    color_attribute: str | None = None
+    notes: list[str] = field(default_factory=list)
+
+
+@dataclass
+class _Color:
+    """A colour as a product: ``const`` x image ``pixels`` at the UV (when set) x the colour
+    attribute ``attr`` (when set)."""
+
+    const: np.ndarray
+    pixels: np.ndarray | None = None
+    node: object = None  # the Image Texture node the pixels come from
+    digest: str = ""
+    attr: str | None = None
+
+    def mean(self) -> np.ndarray:
+        if self.pixels is None:
+            return self.const
+        return self.const * self.pixels.reshape(-1, 3).mean(axis=0, dtype=np.float64)
+
+
+def _const(c) -> _Color:
+    return _Color(np.asarray(c, np.float64)[:3].copy())
+
+
+class _Evaluator:
+    """Walks one material's node tree (context: the stack of group nodes entered)."""
+
+    def __init__(self, mat) -> None:
+        self.mat = mat
+        self.notes: list[str] = []
+        self.uv: tuple[str, np.ndarray | None] | None = None
+
+    def note(self, text: str) -> None:
+        line = f"material '{self.mat.name}': {text}"
+        if line not in self.notes:
+            self.notes.append(line)
+
+    # ------------------------------------------------------------------ socket resolution
+
+    def resolve(self, socket, stack=()):
+        """(node, output socket, stack) feeding ``socket`` through reroutes, muted nodes and
+        group boundaries, or (None, unlinked input socket whose default holds, stack)."""
+        for _ in range(256):
+            links = [lk for lk in socket.links if not lk.is_muted] if socket.is_linked else []
+            if not links:
+                return None, socket, stack
+            node, out = links[0].from_node, links[0].from_socket
+            if node.bl_idname == "NodeReroute":
+                socket = node.inputs[0]
+            elif node.mute:
+                passed = [lk.from_socket for lk in node.internal_links if lk.to_socket == out]
+                if not passed:
+                    return None, None, stack  # a muted node with nothing passed: black
+                socket = passed[0]
+            elif node.bl_idname == "ShaderNodeGroup" and node.node_tree is not None:
+                outs = [n for n in node.node_tree.nodes if n.bl_idname == "NodeGroupOutput"]
+                target = next((n for n in outs if n.is_active_output), outs[0] if outs else None)
+                inner = None if target is None else _by_identifier(target.inputs, out.identifier)
+                if inner is None:
+                    return None, None, stack
+                socket, stack = inner, stack + (node,)
+            elif node.bl_idname == "NodeGroupInput" and stack:
+                outer = _by_identifier(stack[-1].inputs, out.identifier)
+                if outer is None:
+                    return None, None, stack
+                socket, stack = outer, stack[:-1]
+            else:
+                return node, out, stack
+        return None, None, stack
+
+    # ------------------------------------------------------------------------- shaders
+
+    def shader(self, socket, stack=(), depth=0) -> tuple[_Color, np.ndarray]:
+        """(diffuse colour, emitted radiance) of the shader feeding ``socket``."""
+        node, _, stack = self.resolve(socket, stack)
+        zero = np.zeros(3)
+        if node is None or depth > 32:
+            return _const(zero), zero
+        kind = node.bl_idname
+        if kind == "ShaderNodeBsdfPrincipled":
+            return self.principled(node, stack)
+        if kind in DIFFUSE_COLOR:
+            return self.color(node.inputs["Color"], stack), zero
+        if kind == "ShaderNodeBsdfToon":
+            if node.component == "DIFFUSE":
+                return self.color(node.inputs["Color"], stack), zero
+            return _const(zero), zero
+        if kind == "ShaderNodeEmission":
+            strength = self.value(node.inputs["Strength"], stack)
+            return _const(zero), self.mean(node.inputs["Color"], stack, "emission") * strength
+        if kind in NO_DIFFUSE:
+            return _const(zero), zero
+        if kind in ("ShaderNodeMixShader", "ShaderNodeAddShader"):
+            shaders = [s for s in node.inputs if s.type == "SHADER"]
+            a, ea = self.shader(shaders[0], stack, depth + 1)
+            b, eb = self.shader(shaders[1], stack, depth + 1)
+            if kind == "ShaderNodeAddShader":
+                return self.combine(a, 1.0, b, 1.0), ea + eb
+            f = float(np.clip(self.value(node.inputs[0], stack), 0.0, 1.0))
+            return self.combine(a, 1.0 - f, b, f), (1.0 - f) * ea + f * eb
+        if kind == "ShaderNodeBsdfSheen":
+            self.note(f"Sheen BSDF '{node.name}' taken as no diffuse (its albedo is about 0.02)")
+            return _const(zero), zero
+        self.note(f"shader '{node.name}' ({kind}) is not evaluated: grey 0.8")
+        return _const(DEFAULT_ALBEDO), zero
+
+    def principled(self, node, stack) -> tuple[_Color, np.ndarray]:
+        """Principled BSDF's diffuse weight as Cycles 5.0 layers it (module docstring)."""
+        inp = node.inputs
+
+        def val(name, default=0.0):
+            return self.value(inp[name], stack) if name in inp else default
+
+        metallic = np.clip(val("Metallic"), 0.0, 1.0)
+        transmission = np.clip(val("Transmission Weight"), 0.0, 1.0)
+        alpha = np.clip(val("Alpha", 1.0), 0.0, 1.0)
+        ior = max(val("IOR", 1.5), 1e-6)
+        f0 = ((ior - 1.0) / (ior + 1.0)) ** 2 * 2.0 * max(val("Specular IOR Level", 0.5), 0.0)
+        tint = self.color(inp["Specular Tint"], stack).mean() if "Specular Tint" in inp else 1
+        k = (1.0 - metallic) * (1.0 - transmission) * alpha
+        weight = k * np.clip(1.0 - np.clip(f0, 0.0, 1.0) * np.asarray(tint), 0.0, 1.0)
+        coat = np.clip(val("Coat Weight"), 0.0, 1.0)
+        if coat > 0:
+            coat_ior = max(val("Coat IOR", 1.5), 1e-6)
+            cf0 = ((coat_ior - 1.0) / (coat_ior + 1.0)) ** 2
+            coat_tint = self.color(inp["Coat Tint"], stack).mean()
+            weight = weight * (1.0 - coat * cf0) * (1.0 - coat + coat * coat_tint)
+        if val("Sheen Weight") > 0:
+            self.note(f"'{node.name}': sheen left out of the diffuse albedo (its albedo is "
+                      "about 0.02 of the sheen tint)")
+        base = self.color(inp["Base Color"], stack)
+        base.const = base.const * weight
+        emission = np.zeros(3)
+        if "Emission Strength" in inp:
+            strength = val("Emission Strength")
+            if strength != 0:
+                emission = self.mean(inp["Emission Color"], stack, "emission") * strength
+        return base, emission
+
+    # ---------------------------------------------------------------------- colour algebra
+
+    def combine(self, a: _Color, wa: float, b: _Color, wb: float) -> _Color:
+        """wa a + wb b, kept exact where one side is constant (the image's pixels take it)."""
+        if wb == 0 or not b.const.any():
+            return _Color(a.const * wa, a.pixels, a.node, a.digest, a.attr)
+        if wa == 0 or not a.const.any():
+            return _Color(b.const * wb, b.pixels, b.node, b.digest, b.attr)
+        if a.attr is None and b.attr is None:
+            if a.pixels is not None and b.pixels is not None:
+                self.note(f"two images mixed ('{a.node.image.name}', '{b.node.image.name}'): "
+                          f"the mean colour of '{b.node.image.name}' used")
+                b = _const(b.mean())
+            if a.pixels is None and b.pixels is None:
+                return _const(wa * a.const + wb * b.const)
+            tex, other, wt, wo = (a, b, wa, wb) if a.pixels is not None else (b, a, wb, wa)
+            pixels = (tex.pixels * (wt * tex.const).astype(np.float32)
+                      + (wo * other.const).astype(np.float32))
+            key = f"{tex.digest}*{wt * tex.const}+{wo * other.const}"
+            return _Color(np.ones(3), pixels, tex.node, _hash(key))
+        keep, drop, wk, wd = (a, b, wa, wb) if a.attr is not None else (b, a, wb, wa)
+        self.note(f"colour attribute '{keep.attr or 'render'}' mixed with another input: "
+                  "the other input's mean added to its weight")
+        scale = wk + wd * float(np.mean(drop.mean()))
+        return _Color(keep.const * scale, keep.pixels, keep.node, keep.digest, keep.attr)
+
+    def product(self, a: _Color, b: _Color) -> _Color:
+        """a x b; a second image or colour attribute is taken at its mean."""
+        if a.pixels is not None and b.pixels is not None:
+            self.note(f"two images multiplied: the mean colour of '{b.node.image.name}' used")
+            b = _Color(b.mean(), attr=b.attr)
+        if a.attr is not None and b.attr is not None:
+            self.note("two colour attributes multiplied: the second left out")
+            b = _Color(b.const, b.pixels, b.node, b.digest)
+        tex = a if a.pixels is not None else b
+        return _Color(a.const * b.const, tex.pixels, tex.node, tex.digest,
+                      a.attr if a.attr is not None else b.attr)
+
+    # ---------------------------------------------------------------------- colour inputs
+
+    def color(self, socket, stack=()) -> _Color:
+        """The value of a colour input as a _Color."""
+        node, out, stack = self.resolve(socket, stack)
+        if node is None:
+            return _const(_default_color(out))
+        kind = node.bl_idname
+        if kind == "ShaderNodeTexImage":
+            return self.image(node, out, stack)
+        if kind == "ShaderNodeRGB":
+            return _const(out.default_value[:3])
+        if kind == "ShaderNodeValue":
+            return _const([out.default_value] * 3)
+        if kind in ("ShaderNodeVertexColor", "ShaderNodeAttribute"):
+            name = node.layer_name if kind == "ShaderNodeVertexColor" else node.attribute_name
+            if kind == "ShaderNodeAttribute" and node.attribute_type != "GEOMETRY":
+                self.note(f"attribute '{name}' is not a mesh attribute: grey 0.8")
+                return _const(DEFAULT_ALBEDO)
+            return _Color(np.ones(3), attr=name)
+        if kind in ("ShaderNodeMix", "ShaderNodeMixRGB"):
+            mixed = self.mix(node, stack)
+            if mixed is not None:
+                return mixed
+        self.note(f"colour from '{node.name}' ({kind}) is not evaluated: its socket's "
+                  "default colour used")
+        return _const(_default_color(socket))
+
+    def mix(self, node, stack) -> _Color | None:
+        """Mix Color MIX / MULTIPLY / ADD with its factor (None: another blend or data type)."""
+        if node.bl_idname == "ShaderNodeMix":
+            if node.data_type != "RGBA":
+                return None
+            fac_s, a_s, b_s = (node.inputs[i] for i in ("Factor_Float", "A_Color", "B_Color"))
+        else:
+            fac_s, a_s, b_s = node.inputs[0], node.inputs[1], node.inputs[2]
+        blend = node.blend_type
+        if blend not in ("MIX", "MULTIPLY", "ADD"):
+            return None
+        f = float(self.value(fac_s, stack))
+        if getattr(node, "clamp_factor", True):
+            f = float(np.clip(f, 0.0, 1.0))
+        if getattr(node, "clamp_result", False) or getattr(node, "use_clamp", False):
+            self.note(f"'{node.name}': Clamp Result not applied")
+        a, b = self.color(a_s, stack), self.color(b_s, stack)
+        if blend == "MIX":
+            return self.combine(a, 1.0 - f, b, f)
+        if blend == "ADD":
+            return self.combine(a, 1.0, b, f)
+        # MULTIPLY: a x ((1 - f) + f b)
+        return self.product(a, self.combine(_const(np.ones(3)), 1.0 - f, b, f))
+
+    def mean(self, socket, stack, what: str) -> np.ndarray:
+        """A colour input's mean, reported when it varies over the surface."""
+        c = self.color(socket, stack)
+        if c.pixels is not None or c.attr is not None:
+            self.note(f"the {what} colour varies over the surface: its mean "
+                      f"({', '.join(f'{v:.3f}' for v in c.mean())}) used")
+        return c.mean()
+
+    def value(self, socket, stack=()) -> float:
+        """A float input: its default, a Value/RGB node, or the mean (luminance) of what feeds
+        it, reported when that varies over the surface."""
+        node, out, stack = self.resolve(socket, stack)
+        if node is None:
+            if out is None:
+                return 0.0
+            v = out.default_value
+            return float(v) if np.ndim(v) == 0 else float(_LUMA @ np.asarray(v[:3], np.float64))
+        if node.bl_idname == "ShaderNodeValue":
+            return float(out.default_value)
+        if node.bl_idname == "ShaderNodeTexImage" and out.name == "Alpha":
+            alpha = self.image_alpha_mean(node)
+            self.note(f"'{socket.name}' driven by the alpha of image "
+                      f"'{getattr(node.image, 'name', '')}': its mean {alpha:.3f} used")
+            return alpha
+        c = self.color(socket, stack)
+        v = float(_LUMA @ c.mean())
+        if c.pixels is not None or c.attr is not None:
+            self.note(f"'{socket.name}' varies over the surface: its mean {v:.3f} used")
+        return v
+
+    # ---------------------------------------------------------------------------- images
+
+    def image(self, node, out, stack) -> _Color:
+        image = node.image
+        if out.name == "Alpha":
+            return _const([self.image_alpha_mean(node)] * 3)
+        if image is None:
+            self.note(f"Image Texture '{node.name}' has no image: black, as Cycles shows it")
+            return _const(np.zeros(3))
+        digest, rgba = image_pixels(image)
+        if rgba is None:
+            path = bpy.path.abspath(image.filepath) if image.filepath else "(no file)"
+            line = f"image '{image.name}' is missing ({path}): magenta, as Cycles shows it"
+            self.note(line)
+            print(f"LPV GI: material '{self.mat.name}': {line}", file=sys.stderr)
+            return _const(MAGENTA)
+        uv = self.uv_source(node, stack)
+        if uv is None:
+            self.note(f"image '{image.name}' is not mapped by a UV map: its mean colour used")
+            return _const(rgba[..., :3].reshape(-1, 3).mean(axis=0, dtype=np.float64))
+        if self.uv is not None and self.uv[0] != uv[0]:
+            self.note(f"images read different UV maps: '{image.name}' reads "
+                      f"'{self.uv[0] or 'render'}' as the first image does")
+        elif self.uv is None:
+            self.uv = uv
+        return _Color(np.ones(3), rgba[..., :3], node, digest)
+
+    def image_alpha_mean(self, node) -> float:
+        if node.image is None:
+            return 0.0
+        _, rgba = image_pixels(node.image)
+        return 1.0 if rgba is None else float(rgba[..., 3].mean(dtype=np.float64))
+
+    def uv_source(self, node, stack) -> tuple[str, np.ndarray | None] | None:
+        """(UV map name, "" for the render one; 3x3 affine or None) the image node reads, or
+        None when it is projected by something else (Generated, Object, a box projection)."""
+        if getattr(node, "projection", "FLAT") != "FLAT":
+            return None
+        src, out, stack = self.resolve(node.inputs["Vector"], stack)
+        transform = None
+        if src is not None and src.bl_idname == "ShaderNodeMapping":
+            transform = _mapping_matrix(src, self, stack)
+            if transform is None:
+                return None
+            src, out, stack = self.resolve(src.inputs["Vector"], stack)
+        if src is None:
+            return ("", transform) if out is not None and not out.is_linked else None
+        if src.bl_idname == "ShaderNodeUVMap":
+            return src.uv_map, transform
+        if src.bl_idname == "ShaderNodeTexCoord" and out.name == "UV":
+            return "", transform
+        return None
+
+
+def _mapping_matrix(node, ev: _Evaluator, stack) -> np.ndarray | None:
+    """The Mapping node's transform of (u, v, 0) as a 3x3 affine on (u, v, 1) (POINT,
+    TEXTURE, VECTOR; its inputs constant), as Blender's node_mapping defines it."""
+    def vec(name):
+        src, sock, _ = ev.resolve(node.inputs[name], stack)
+        return None if src is not None or sock is None else np.array(sock.default_value[:3])
+
+    loc = vec("Location") if "Location" in node.inputs else np.zeros(3)
+    rot, scale = vec("Rotation"), vec("Scale")
+    if loc is None or rot is None or scale is None:
+        ev.note(f"Mapping '{node.name}' has linked inputs: not applied")
+        return np.eye(3)
+    cx, cy, cz = np.cos(rot)
+    sx, sy, sz = np.sin(rot)
+    rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
+    ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+    rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
+    r = rz @ ry @ rx  # Euler XYZ
+    kind = node.vector_type
+    m4 = np.eye(4)
+    if kind in ("POINT", "VECTOR"):
+        m4[:3, :3] = r @ np.diag(scale)
+        if kind == "POINT":
+            m4[:3, 3] = loc
+    elif kind == "TEXTURE":
+        safe = np.where(scale != 0, scale, 1.0)
+        m4[:3, :3] = np.diag(1.0 / safe) @ r.T
+        m4[:3, 3] = -m4[:3, :3] @ loc
+    else:  # NORMAL: not a texture-coordinate transform
+        return np.eye(3)
+    # (u, v, 0, 1) -> the first two components.
+    return np.array([[m4[0, 0], m4[0, 1], m4[0, 3]], [m4[1, 0], m4[1, 1], m4[1, 3]],
+                     [0.0, 0.0, 1.0]])
+
+
+def _by_identifier(sockets, identifier: str):
+    return next((s for s in sockets if s.identifier == identifier), None)
+
+
+def _default_color(socket) -> np.ndarray:
+    if socket is None:
+        return np.zeros(3)
+    v = getattr(socket, "default_value", None)
+    if v is None:
+        return np.zeros(3)
+    if np.ndim(v) == 0:
+        return np.full(3, float(v))
+    return np.array(v[:3], np.float64)
+
+
+def _hash(text: str) -> str:
+    return hashlib.blake2b(text.encode(), digest_size=12).hexdigest()
+
+
+# --------------------------------------------------------------------------------- public
+
+
+def material_info(mat) -> MaterialInfo:
+    """The core Material of ``mat`` (None: the default grey) and what its texture reads."""
+    if mat is None:
+        return MaterialInfo(core.scene.Material("(none)", np.array(DEFAULT_ALBEDO, np.float32)))
+    ev = _Evaluator(mat)
+    diffuse, emission = _const(mat.diffuse_color[:3]), np.zeros(3)
+    tree = getattr(mat, "node_tree", None)
+    use_nodes = tree is not None and (bpy.app.version >= (5, 0, 0) or mat.use_nodes)
+    output = _active_output(tree) if use_nodes else None
+    if output is not None:
+        surface = output.inputs.get("Surface")
+        diffuse, emission = ev.shader(surface)
+    m = core.scene.Material(mat.name, np.clip(diffuse.const, 0.0, None).astype(np.float32))
+    m.emission = np.clip(np.asarray(emission, np.float64), 0.0, None).astype(np.float32)
+    info = MaterialInfo(m, color_attribute=diffuse.attr, notes=ev.notes)
+    if diffuse.pixels is not None:
+        node = diffuse.node
+        m.texture = core.scene.Texture(
+            name=node.image.name, pixels=np.ascontiguousarray(diffuse.pixels, np.float32),
+            interpolation=node.interpolation, extension=node.extension, digest=diffuse.digest)
+        info.uv_map, info.uv_transform = ev.uv if ev.uv is not None else ("", None)
+    props = getattr(mat, "lpv", None)
+    if props is not None and hasattr(props, "bleed_intensity"):
+        if props.use_bleed_color:
+            m.bleed_color = np.array(props.bleed_color[:3], np.float32)
+        m.bleed_intensity = float(props.bleed_intensity)
+        m.emission_gi_intensity = float(getattr(props, "emission_gi_intensity", 1.0))
+    return info
+
+
+def material_albedo(mat, image_cache: dict | None = None) -> np.ndarray:
+    """The mean diffuse albedo of ``mat`` (its factor x its texture's mean colour): the single
+    colour a material shows where one colour is asked for."""
+    info = material_info(mat)
+    albedo = info.material.albedo.astype(np.float64)
+    if info.material.texture is not None:
+        albedo = albedo * info.material.texture.pixels.reshape(-1, 3).mean(axis=0)
+    return albedo.astype(np.float32)
+
+
+def material_emits(mat) -> bool:
+    """Whether ``mat``'s surface shader emits light (non-zero radiance)."""
+    return mat is not None and bool(material_info(mat).material.emission.any())
+
+
+def _active_output(tree):
+    outputs = [n for n in tree.nodes if n.bl_idname == "ShaderNodeOutputMaterial"]
+    for node in outputs:
+        if node.is_active_output and node.target in ("ALL", "CYCLES"):
+            return node
+    for node in outputs:
+        if node.is_active_output:
+            return node
+    return outputs[0] if outputs else None
+
+
+# --------------------------------------------------------------------------------- images
+
+
+def image_digest(image) -> str:
+    """A cheap content key: name, file, size, source, generated settings, colour space, alpha
+    mode, packed size; an image painted in this session (is_dirty) is keyed by its pixels."""
+    parts = [image.name, image.filepath, image.source, tuple(image.size), image.is_float,
+             image.colorspace_settings.name, image.alpha_mode, image.channels]
+    if image.source == "GENERATED":
+        parts += [image.generated_type, tuple(image.generated_color),
+                  image.generated_width, image.generated_height]
+    packed = image.packed_file
+    if packed is not None:
+        parts.append(packed.size)
+    elif image.filepath:
+        path = bpy.path.abspath(image.filepath)
+        try:
+            st = os.stat(path)
+            parts += [st.st_size, st.st_mtime_ns]
+        except OSError:
+            parts.append("missing")
+    return _hash(repr(parts))
+
+
+def image_pixels(image) -> tuple[str, np.ndarray | None]:
+    """(digest, (H, W, 4) float32 pixels as the Image Texture node's Color output gives them:
+    scene-linear, straight alpha, rows bottom-first, at most TEXTURE_BUDGET pixels); pixels
+    None for a missing or empty image. Cached by digest across extractions (bounded)."""
+    digest = image_digest(image)
+    dirty = image.is_dirty
+    if not dirty and digest in _textures:
+        _textures.move_to_end(digest)
+        return digest, _textures[digest]
+    w, h = image.size[:]
+    channels = image.channels
+    if w <= 0 or h <= 0 or channels <= 0:
+        return digest, None
+    px = np.empty(w * h * channels, np.float32)
+    image.pixels.foreach_get(px)
+    if dirty:
+        digest = _hash(digest + hashlib.blake2b(px.tobytes(), digest_size=12).hexdigest())
+    rgba = _as_rgba(px.reshape(h, w, channels))
+    if not image.is_float and image.colorspace_settings.name == "sRGB":
+        rgba[..., :3] = _byte_srgb_to_linear(rgba[..., :3])
+    if image.alpha_mode == "PREMUL" and channels == 4:
+        a = rgba[..., 3:]
+        rgba[..., :3] = np.where(a > 0, rgba[..., :3] / np.where(a > 0, a, 1), rgba[..., :3])
+    rgba = resample_to_budget(rgba, TEXTURE_BUDGET)
+    with np.errstate(invalid="ignore"):
+        bad = ~np.isfinite(rgba) | (rgba < 0)
+    if bad.any():
+        print(f"LPV GI: image '{image.name}': {int(bad.any(axis=2).sum())} non-finite or "
+              "negative pixels set to 0", file=sys.stderr)
+        rgba[bad] = 0.0
+    _textures[digest] = rgba
+    while sum(t.shape[0] * t.shape[1] for t in _textures.values()) > _CACHE_PIXELS and \
+            len(_textures) > 1:
+        _textures.popitem(last=False)
+    return digest, rgba
+
+
+def _as_rgba(px: np.ndarray) -> np.ndarray:
+    c = px.shape[2]
+    if c == 4:
+        return px.copy()
+    out = np.ones(px.shape[:2] + (4,), np.float32)
+    if c >= 3:
+        out[..., :3] = px[..., :3]
+    else:
+        out[..., :3] = px[..., :1]
+        if c == 2:
+            out[..., 3] = px[..., 1]
+    return out
+
+
+def resample_to_budget(rgba: np.ndarray, budget: int) -> np.ndarray:
+    """Box-filter ``rgba`` (H, W, C) down by the smallest whole factor per axis that brings it
+    within ``budget`` pixels (rows and columns past a whole multiple are cut)."""
+    h, w = rgba.shape[:2]
+    if h * w <= budget:
+        return rgba
+    k = math.ceil(math.sqrt(h * w / budget))
+    while (h // k) * (w // k) > budget:
+        k += 1
+    hh, ww = max(1, h // k), max(1, w // k)
+    ky, kx = max(1, h // hh), max(1, w // ww)
+    cut = rgba[:hh * ky, :ww * kx]
+    return cut.reshape(hh, ky, ww, kx, -1).mean(axis=(1, 3), dtype=np.float32)
+
+
+def srgb_to_linear(c: np.ndarray) -> np.ndarray:
+    """The sRGB transfer function's inverse (IEC 61966-2-1)."""
+    c = np.clip(np.asarray(c, np.float32), 0.0, None)
+    return np.where(c <= 0.04045, c / np.float32(12.92),
+                    ((c + np.float32(0.055)) / np.float32(1.055)) ** np.float32(2.4))
+
+
+_BYTE_SRGB = srgb_to_linear(np.arange(256, dtype=np.float32) / np.float32(255.0))
+
+
+def _byte_srgb_to_linear(c: np.ndarray) -> np.ndarray:
+    """srgb_to_linear of byte values read as float (k / 255): a 256-entry table, exact."""
+    return _BYTE_SRGB[np.rint(np.clip(c, 0.0, 1.0) * 255.0).astype(np.intp)]
+
+
+def image_mean_color(image, cache: dict | None = None) -> np.ndarray | None:
+    """Mean scene-linear RGB of an image as the Image Texture node reads it; None if missing."""
+    _, rgba = image_pixels(image)
+    return None if rgba is None else rgba[..., :3].reshape(-1, 3).mean(0).astype(np.float32)
