@@ -102,6 +102,17 @@ class LPVSceneSettings(bpy.types.PropertyGroup):
         name="GI Intensity", default=1.0, soft_max=4.0, update=_changed, **_limits("intensity"),
         description="Brightness of all bounced light in the scene (keyframe it to fade GI)",
     )
+    world_gi: BoolProperty(
+        name="World GI", default=True, update=_changed,
+        description="Light the scene with the World (colour, sky or HDRI); off: the camera "
+                    "still sees it",
+    )
+    world_gi_intensity: FloatProperty(
+        name="World GI Intensity", default=1.0, soft_max=4.0, update=_changed,
+        **_limits("intensity"),
+        description="Brightness of the World's light on the scene (keyframe it to fade the "
+                    "sky)",
+    )
     quality: EnumProperty(
         name="Quality", update=_quality_changed, default=_DEFAULT_QUALITY,
         items=[(k, v[0], v[1]) for k, v in PRESETS.items()]

@@ -30,7 +30,7 @@ def warning_lines(stats: dict) -> list[str]:
     dropped = stats.get("dropped", {})
     lines = unmodelled_warnings(dropped)
     lines += [f"left out: {n} {key.replace('_', ' ')}" for key, n in sorted(dropped.items())
-              if n and key not in ("world_lighting_ignored", "emissive_materials_ignored")]
+              if n and key != "emissive_materials_ignored"]
     lines += [f"approximated: {line}" for line in stats.get("info", {}).get("approximated", [])]
     return lines + [f"{s['what']}: {s['reason']}" for s in stats.get("skipped", [])
                     if s["stage"] in ("lpv", "resolution")]
@@ -98,6 +98,10 @@ class LPV_PT_main(_Sidebar, bpy.types.Panel):
         layout.use_property_decorate = True  # keyframe dots: intensity is animatable
         layout.active = props.enabled
         layout.prop(props, "intensity")
+        layout.prop(props, "world_gi")
+        row = layout.row()
+        row.active = props.world_gi
+        row.prop(props, "world_gi_intensity")
         layout.prop(props, "quality")
         layout.prop(props, "show_overlay")
         col = layout.column()

@@ -27,6 +27,7 @@ SCENE_VALUES = {
     "show_overlay": False, "overlay_mode": "PROBES", "overlay_exposure": -1.5,
     "batch_directory": "//frames_out/", "compare_resolution": 48, "compare_samples": 16,
     "compare_summary": "x", "active_light_index": 2, "active_area_index": 1,
+    "world_gi": False, "world_gi_intensity": 0.5,
 }
 LIGHT_VALUES = {"gi_intensity": -0.75, "gi_color": (0.2, 0.4, 0.9)}
 OBJECT_VALUES = {"gi_caster": False, "gi_occluder": False, "gi_receiver": False,

@@ -440,21 +440,21 @@ def test_settings_from_scene_and_overrides(lpv_props):
 
 
 def test_world_light_and_emissive_materials_are_reported_as_not_modelled():
-    """LPV GI models lamps only: a lighting world and emissive materials are counted in
-    Scene.dropped (stats.json) rather than silently missing."""
+    """A lighting world reaches Scene.world (a black one is nothing to do); emissive
+    materials are counted in Scene.dropped (stats.json) rather than silently missing."""
     ob = cube()
     bpy.context.scene.world = None
-    assert "world_lighting_ignored" not in run().dropped
+    assert run().world is None
     world = bpy.data.worlds.new("W")
     if world.node_tree is None:  # Blender < 5: node trees are opt-in
         world.use_nodes = True
     bpy.context.scene.world = world
     bg = next(n for n in world.node_tree.nodes if n.bl_idname == "ShaderNodeBackground")
     bg.inputs["Strength"].default_value = 0.0
-    assert "world_lighting_ignored" not in run().dropped
+    assert run().world is None
     bg.inputs["Strength"].default_value = 1.0
     bg.inputs["Color"].default_value = (0.2, 0.3, 0.4, 1.0)
-    assert run().dropped["world_lighting_ignored"] == 1
+    assert run().world.radiance.reshape(-1, 3)[0] == pytest.approx((0.2, 0.3, 0.4))
     glow, p = material("Glow")
     ob.data.materials.append(glow)
     assert "emissive_materials_ignored" not in run().dropped

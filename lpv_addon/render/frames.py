@@ -196,9 +196,6 @@ class InWorker:
 def unmodelled_warnings(dropped: dict) -> list[str]:
     """One line per light source LPV GI does not model (also in stats.json)."""
     out = []
-    if dropped.get("world_lighting_ignored"):
-        out.append("the world (background) lights this scene; LPV GI models lamps only, so "
-                   "world light is missing from Diffuse Direct and Indirect")
     n = dropped.get("emissive_materials_ignored", 0)
     if n:
         out.append(f"{n} emissive material(s) ignored; LPV GI models lamps only")
@@ -288,7 +285,8 @@ class BatchJob:
         if self.record["settings"] is None:
             self.record["settings"] = core_scene.settings.as_dict()
             self._open_stats()
-            for line in unmodelled_warnings(core_scene.dropped):
+            for line in unmodelled_warnings(core_scene.dropped) + [
+                    f"approximated: {a}" for a in core_scene.approximated]:
                 self._log(f"warning: {line}")
         entry = {"frame": frame, "t0": t0, "extract": t_ex, "timings": timings,
                  "intensity": core_scene.settings.intensity}

@@ -22,6 +22,7 @@ from .materials import (  # noqa: F401 - re-exported: the material half of the e
     material_emits,
     material_info,
 )
+from .world import world_from_blender
 
 MESH_LIKE = frozenset({"MESH", "CURVE", "SURFACE", "FONT", "META"})
 # Object types with geometry we cannot triangulate (hair curves, point clouds, volumes, ...).
@@ -113,49 +114,24 @@ def extract_scene(
                 "or extract with require_camera=False"
             )
         settings = settings_from_scene(scene, settings_overrides)
+    with timer.phase("world"):
+        world, world_notes, world_lights = world_from_blender(scene.world, scene)
+    lights += world_lights
 
     positions, normals, mat_index, obj_index = geo.arrays()
     with timer.phase("make_scene"):
         result = core.scene.make_scene(
             positions, normals, mat_index, geo.materials, lights, camera, settings,
             object_index=obj_index, object_names=geo.object_names, areas=areas,
-            **geo.flags(obj_index), **geo.corner_arrays(),
+            **geo.flags(obj_index), **geo.corner_arrays(), world=world,
         )
-    result.approximated.extend(geo.approximated)
+    result.approximated.extend(geo.approximated + world_notes)
     for key, value in dropped.items():
         result.dropped[key] = result.dropped.get(key, 0) + value
     # Light sources the LPV does not model: counted, so stats and the CLI can say so.
     if geo.emissive:
         result.dropped["emissive_materials_ignored"] = len(geo.emissive)
-    if world_emits(scene.world):
-        result.dropped["world_lighting_ignored"] = 1
     return result
-
-
-def world_emits(world) -> bool:
-    """Whether the world lights the scene (a non-black Background with strength > 0 on the
-    active World Output's Surface, or a non-black world colour without nodes). LPV GI models
-    lamps only; Cycles counts world light in its Diffuse Direct and Indirect passes."""
-    if world is None:
-        return False
-    tree = getattr(world, "node_tree", None)
-    if tree is None:
-        return float(max(world.color[:3])) > 0
-    outputs = [n for n in tree.nodes if n.bl_idname == "ShaderNodeOutputWorld"]
-    output = next((n for n in outputs if n.is_active_output), outputs[0] if outputs else None)
-    if output is None:
-        return False
-    source = _link_source(output.inputs["Surface"])
-    if source is None:
-        return False
-    node = source[0]
-    if node.bl_idname != "ShaderNodeBackground":
-        return not node.mute  # a sky texture mix etc.: assume it emits
-    strength = node.inputs["Strength"]
-    colour = node.inputs["Color"]
-    if strength.is_linked or colour.is_linked:
-        return True
-    return float(strength.default_value) > 0 and float(max(colour.default_value[:3])) > 0
 
 
 def _visible(inst, ob, render_visibility: bool) -> bool:
@@ -524,24 +500,6 @@ def _to_world(pos, nrm, matrix: np.ndarray, out_pos: np.ndarray, out_nrm: np.nda
             corner = arr[:, 1].copy()
             arr[:, 1] = arr[:, 2]
             arr[:, 2] = corner
-
-
-# -------------------------------------------------------------------------------- materials
-
-
-def _link_source(socket):
-    """(node, output socket) feeding an input socket, through reroutes; None if unlinked."""
-    for _ in range(64):
-        if not socket.is_linked or not socket.links:
-            return None
-        link = socket.links[0]
-        if link.is_muted:
-            return None
-        node = link.from_node
-        if node.bl_idname != "NodeReroute":
-            return node, link.from_socket
-        socket = node.inputs[0]
-    return None
 
 
 # ------------------------------------------------------------------------------- GI flags
