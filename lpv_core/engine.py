@@ -18,6 +18,7 @@ from . import areas, cascades, geometry_volume, injection, lookup, planner, prop
 from .grid import Grid
 from .propagation import sweep
 from .runtime import blas, heap, jit
+from .scene import textures
 from .scene.model import Scene, max_grid_resolution
 
 
@@ -215,10 +216,14 @@ class Engine:
 
     def _send(self, scene: Scene, stats: Stats | None, origin) -> None:
         with Timer(stats or Stats(), "upload"):
+            surface = textures.layout(scene.materials, scene.material_index, scene.uvs,
+                                      scene.corner_colors)
             self.raster.upload(scene.positions, scene.normals, scene.albedo_per_triangle(),
                                scene.reflectance_per_triangle(),
                                receiver=None if scene.receiver is None else scene.flag("receiver"),
-                               origin=origin)
+                               origin=origin, surface=surface)
+            if self.raster.surface is not None and stats is not None:
+                stats.info["textures"] = self.raster.surface.info
 
     def lpv_bounds(self, scene: Scene, stats: Stats | None = None, geo: str | None = None):
         """The box the LPV covers (cascades.fit_bounds: far outliers left out; or the closed
@@ -710,6 +715,10 @@ class Engine:
             pos, nrm, area, tri = geometry_volume.surfels(
                 scene.positions[casters], 0.5 * chain[0].cell_size, with_index=True)
             refl = scene.reflectance_per_triangle()[casters][tri].astype(np.float64)
+            if self.raster.surface is not None:  # the texture and corner colour at each surfel
+                at = casters[tri]
+                refl *= self.raster.surface.factor(
+                    at, textures.barycentric(scene.positions[at], pos), gi=True)
             pos2 = np.concatenate([pos, pos])
             nrm2 = np.concatenate([nrm, -nrm])  # surfaces reflect on both sides
             area2 = np.concatenate([area, area])[:, None]
@@ -816,8 +825,16 @@ def geometry_key(scene: Scene) -> str:
 
 
 def reflectance_key(scene: Scene) -> str:
-    """Digest of the per-triangle GI reflectance (albedo x bleed colour and intensity)."""
-    return _digest(scene.reflectance_per_triangle())
+    """Digest of the per-triangle GI reflectance (albedo x bleed colour and intensity) and of
+    what multiplies it per point: the textures' digests and modes, UVs and corner colours."""
+    lay = textures.layout(scene.materials, scene.material_index, scene.uvs,
+                          scene.corner_colors)
+    if lay is None:
+        return _digest(scene.reflectance_per_triangle())
+    modes = repr([(t.interpolation, t.extension) for t in lay.textures] + lay.digests)
+    return _digest(scene.reflectance_per_triangle(), modes, lay.gi_texture, lay.gi_corners,
+                   "" if lay.uvs is None else lay.uvs,
+                   "" if lay.corner_colors is None else lay.corner_colors)
 
 
 def same_vpls(flux, other) -> bool:

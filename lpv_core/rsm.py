@@ -3,7 +3,8 @@
 Each texel of a light's view becomes a virtual point light (VPL): world position, normal and the
 flux it reflects. Perspective texels carry I(w) x (texel solid angle); sun texels carry
 E x (texel footprint area): the texel area term most public code leaves out. The reflected
-flux uses the material's GI reflectance (bleed colour x intensity where the artist set one).
+flux uses the material's GI reflectance (bleed colour x intensity where the artist set one),
+times the corner colour and the texture at the texel's point where the scene has them.
 """
 
 from __future__ import annotations
@@ -57,13 +58,15 @@ def render_rsm(raster: Rasterizer, light: Light, bounds, resolution: int, fit=No
     """The RSM of ``light``: VPLs for every covered texel that reflects any flux.
     ``fit`` (sun only): the box the view's window is fitted to (lights.light_views).
     Each view is one two-target pass (Rasterizer.read_rsm: position, normal and the triangle,
-    whose reflectance the uploaded table gives), converted by view_vpls."""
+    whose reflectance the uploaded table gives), converted by view_vpls; a textured scene's
+    pass adds the texel's point on its triangle, and each texel its own reflectance
+    (Rasterizer.rsm_texels: the texture's colour where the light falls)."""
     parts = []
     texels = 0
     for view in lights_mod.light_views(light, bounds, fit):
-        p4, n4 = raster.read_rsm(view.view, view.projection, resolution, view.ortho)
+        p4, n4, table = raster.rsm_texels(view.view, view.projection, resolution, view.ortho)
         texels += resolution * resolution
-        parts.append(view_vpls(light, view, p4, n4, raster.reflectance, raster.origin))
+        parts.append(view_vpls(light, view, p4, n4, table, raster.origin))
     if not parts:
         empty = np.zeros((0, 3))
         return RSM(light, empty, empty, empty, np.zeros(0), texels)

@@ -35,6 +35,7 @@ import traceback
 import numpy as np
 
 from .runtime import warmup
+from .scene import textures
 from .scene.model import LIGHT_TYPES, Area, Camera, GISettings, Light, Material, Scene
 
 # ------------------------------------------------------------------------ scene <-> npz
@@ -54,18 +55,41 @@ def _as_json(obj) -> dict:
     return {k: _plain(v) for k, v in dataclasses.asdict(obj).items()}
 
 
+TEXTURE_FOLDER = "textures"  # beside the scene file: one <digest>.npy per texture
+
+
+def _material_json(material: Material, folder: str) -> dict:
+    """A material's fields as JSON, its texture by digest: the pixels go to ``folder`` as
+    <digest>.npy, written only when that file is not there yet (each texture sent once)."""
+    tex = material.texture
+    out = _as_json(dataclasses.replace(material, texture=None))
+    if tex is not None:
+        digest = textures.digest_of(tex)
+        out["texture"] = {"name": tex.name, "interpolation": tex.interpolation,
+                          "extension": tex.extension, "digest": digest}
+        file = os.path.join(folder, digest + ".npy")
+        if not os.path.exists(file):
+            os.makedirs(folder, exist_ok=True)
+            tmp = file + ".tmp.npy"
+            np.save(tmp, np.ascontiguousarray(tex.pixels, np.float32))
+            os.replace(tmp, file)
+    return out
+
+
 def save_scene(path: str, scene: Scene) -> None:
-    """Write a core Scene (everything the engine and the deferred renderer use) to ``path``."""
+    """Write a core Scene (everything the engine and the deferred renderer use) to ``path``;
+    texture pixels to TEXTURE_FOLDER beside it, once per digest (_material_json)."""
     arrays = {
         "positions": scene.positions, "normals": scene.normals,
         "material_index": scene.material_index,
     }
-    for name in ("caster", "occluder", "receiver", "object_index"):
+    for name in ("caster", "occluder", "receiver", "object_index", "uvs", "corner_colors"):
         value = getattr(scene, name)
         if value is not None:
             arrays[name] = np.asarray(value)
+    folder = os.path.join(os.path.dirname(os.path.abspath(path)), TEXTURE_FOLDER)
     meta = {
-        "materials": [_as_json(m) for m in scene.materials],
+        "materials": [_material_json(m, folder) for m in scene.materials],
         "lights": [_as_json(li) for li in scene.lights],
         "areas": [_as_json(a) for a in scene.areas],
         "settings": scene.settings.as_dict(),
@@ -89,11 +113,30 @@ def _dataclass(cls, data: dict, arrays: dict):
     return cls(**kw)
 
 
-def load_scene(path: str) -> Scene:
+def load_scene(path: str, held: dict | None = None) -> Scene:
+    """The Scene save_scene wrote. ``held``: digest -> texture pixels this process already
+    has (read from the texture folder only when missing; left holding this scene's)."""
     data = np.load(path)
     meta = json.loads(str(data["meta"]))
-    materials = [_dataclass(Material, m, {"albedo": np.float32, "bleed_color": np.float32})
-                 for m in meta["materials"]]
+    folder = os.path.join(os.path.dirname(os.path.abspath(path)), TEXTURE_FOLDER)
+    known = dict(held or {})
+    materials = []
+    for m in meta["materials"]:
+        tex = m.pop("texture", None)
+        material = _dataclass(Material, m, {"albedo": np.float32, "bleed_color": np.float32,
+                                            "emission": np.float32})
+        if tex is not None:
+            pixels = known.get(tex["digest"])
+            if pixels is None:
+                pixels = np.load(os.path.join(folder, tex["digest"] + ".npy"))
+                known[tex["digest"]] = pixels
+            material.texture = textures.Texture(tex["name"], pixels, tex["interpolation"],
+                                                tex["extension"], tex["digest"])
+        materials.append(material)
+    if held is not None:
+        held.clear()
+        held.update({m.texture.digest: m.texture.pixels for m in materials
+                     if m.texture is not None})
     lights = []
     for d in meta["lights"]:
         light = _dataclass(Light, d, {"matrix": np.float64, "color": np.float32,
@@ -110,7 +153,7 @@ def load_scene(path: str) -> Scene:
     settings = GISettings().updated(**{k: v for k, v in meta["settings"].items()
                                        if k in GISettings.__dataclass_fields__})
     opt = {k: (data[k] if k in data.files else None)
-           for k in ("caster", "occluder", "receiver", "object_index")}
+           for k in ("caster", "occluder", "receiver", "object_index", "uvs", "corner_colors")}
     return Scene(
         positions=data["positions"], normals=data["normals"],
         material_index=data["material_index"], materials=materials, lights=lights,
@@ -172,6 +215,7 @@ class Server:
 
         self.warm = warmup.Warmup()  # before the engine's first stage: kernels off if cold
         self.engine = Engine()
+        self.textures: dict = {}  # digest -> pixels of the last scene's textures (load_scene)
 
     def handle(self, req: dict) -> dict:
         from .engine import Stats
@@ -183,7 +227,7 @@ class Server:
             return {"pid": os.getpid()}
         if cmd not in ("update", "render"):
             raise ValueError(f"unknown command {cmd!r} (update, render, ping, quit)")
-        scene = load_scene(req["scene"])
+        scene = load_scene(req["scene"], self.textures)
         stats = Stats()
         # Interactive updates may shift cascades for a camera move and refresh afterwards.
         result = self.engine.update(scene, stats, reproject=cmd == "update")

@@ -13,6 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..scene import textures
+
 _CTX = None
 
 VERTEX_SHADER = """
@@ -103,6 +105,27 @@ void main() {
 TRIANGLE_SPLIT = 1 << 24  # the RSM pass's triangle index = (pos.w - 1) x this + nrm.w
 
 
+def _with_barycentrics(vertex: str, fragment: str, location: int, value: str) -> tuple[str, str]:
+    """A pass's shaders with one more target at ``location``: ``value`` of the barycentric
+    coordinates ``v_bary`` of corners 1 and 2 (from gl_VertexID: every triangle's three
+    corners are its own vertices), for the per-point albedo (textures.Surface)."""
+    vertex = vertex.replace("void main() {", "out vec2 v_bary;\nvoid main() {\n"
+                            "    int k = gl_VertexID % 3;\n"
+                            "    v_bary = vec2(k == 1 ? 1.0 : 0.0, k == 2 ? 1.0 : 0.0);")
+    fragment = fragment.replace("void main() {", f"in vec2 v_bary;\nlayout(location = "
+                                f"{location}) out vec4 o_bary;\nvoid main() {{")
+    return vertex, fragment[:fragment.rindex("}")] + f"    o_bary = {value};\n}}\n"
+
+
+# Textured scenes' passes: the G-buffer's fifth target holds the barycentrics and the triangle
+# index (split as in the RSM pass), the RSM's third the barycentrics.
+TEXTURED_SHADERS = _with_barycentrics(VERTEX_SHADER, FRAGMENT_SHADER, 4,
+                             "vec4(v_bary, float(1 + (gl_PrimitiveID >> 24)), "
+                             "float(gl_PrimitiveID & 0xFFFFFF))")
+TEXTURED_RSM_SHADERS = _with_barycentrics(RSM_VERTEX_SHADER, RSM_FRAGMENT_SHADER, 2,
+                                 "vec4(v_bary, 0.0, 0.0)")
+
+
 def gl_context():
     """The process's standalone moderngl context (EGL headless, else the platform default)."""
     global _CTX
@@ -161,14 +184,24 @@ class Rasterizer:
         self.origin = np.zeros(3)
         # (T, 3) float32 GI reflectance per uploaded triangle: what read_rsm's indices select
         self.reflectance = np.zeros((0, 3), np.float32)
+        # Per-point albedo of a textured upload (textures.Surface; None: per triangle), the
+        # textures kept per digest, and the textured passes' programs (made on first use)
+        self.surface = None
+        self.texture_store = textures.Store()
+        self.albedo = np.zeros((0, 3), np.float32)
+        self._textured: dict = {}
 
     def upload(self, positions, normals, albedo, reflectance, key=None, receiver=None,
-               origin=None) -> None:
+               origin=None, surface: textures.Layout | None = None) -> None:
         """Upload (T,3,3) corners and normals with (T,3) per-triangle colours and an optional
         (T,) receiver flag (default: every triangle receives GI). Positions are kept relative
-        to ``origin`` (default: the centre of the vertices' bounds) for float32 precision."""
+        to ``origin`` (default: the centre of the vertices' bounds) for float32 precision.
+        ``surface`` (textures.layout): the textures and corner colours the albedo and the
+        GI reflectance take per point; its textures are fitted and kept per digest."""
         if key is not None and key == self._key:
             return
+        self.surface = None if surface is None else textures.Surface(surface,
+                                                                     self.texture_store)
         pos = np.asarray(positions, np.float64).reshape(-1, 3, 3)
         t = pos.shape[0]
         # Keep vertex positions relative to a scene origin: float32 precision far from 0.
@@ -197,10 +230,26 @@ class Rasterizer:
             self._rsm_vao = self.ctx.vertex_array(
                 self.rsm_program, [(self._vbo, "3f 3f 28x", "in_pos", "in_nrm")])
         self.reflectance = np.ascontiguousarray(data[:, 0, 9:12])
+        if self.surface is not None:
+            self.albedo = np.ascontiguousarray(data[:, 0, 6:9])
+            for name, (program, layout) in self._programs().items():
+                self._textured[name + "_vao"] = None if not t else self.ctx.vertex_array(
+                    program, [(self._vbo, *layout)])
         self._key = key
 
+    def _programs(self) -> dict:
+        """The textured passes' programs and vertex layouts, compiled on first use."""
+        if "gbuffer" not in self._textured:
+            for name, (vs, fs) in (("gbuffer", TEXTURED_SHADERS),
+                                   ("rsm", TEXTURED_RSM_SHADERS)):
+                self._textured[name] = self.ctx.program(vertex_shader=vs, fragment_shader=fs)
+        return {"gbuffer": (self._textured["gbuffer"], ("3f 3f 3f 3f 1f", "in_pos", "in_nrm",
+                                                        "in_alb", "in_refl", "in_recv")),
+                "rsm": (self._textured["rsm"], ("3f 3f 28x", "in_pos", "in_nrm"))}
+
     def release_geometry(self) -> None:
-        for obj in (self._vao, self._rsm_vao, self._vbo):
+        vaos = [self._textured.pop(k) for k in ("gbuffer_vao", "rsm_vao") if k in self._textured]
+        for obj in (self._vao, self._rsm_vao, self._vbo, *vaos):
             if obj is not None:
                 obj.release()
         self._vao = self._rsm_vao = self._vbo = None
@@ -280,6 +329,32 @@ class Rasterizer:
         pos, nrm = self._targets(fbo, (0, 1), size, size)
         return pos, nrm
 
+    def rsm_texels(self, view: np.ndarray, projection: np.ndarray, size: int,
+                   ortho: bool = False) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """read_rsm's targets and the reflectance table their w indices select: the
+        per-triangle table, or on a textured upload each covered texel's own reflectance
+        (the triangle's x corner colour x texture at the texel's point, textures.Surface)
+        with the w channels holding the texel's row in it."""
+        if self.surface is None or self._vao is None:
+            pos, nrm = self.read_rsm(view, projection, size, ortho)
+            return pos, nrm, self.reflectance
+        fbo = self._fbo(size, size, 3)
+        self._draw(self._textured["rsm"], self._textured["rsm_vao"], fbo, view, projection,
+                   ortho)
+        pos, nrm, bary = self._targets(fbo, (0, 1, 2), size, size)
+        covered = pos[..., 3] > 0.5
+        tri = self.triangles(pos[covered], nrm[covered])
+        table = self.reflectance[tri] * self.surface.factor(tri, bary[covered][:, :2], gi=True)
+        # copies laid out like the read-back (rows reversed, read-only): the compiled texel
+        # pass sees the same array types as untextured maps
+        pos, nrm = pos[::-1].copy()[::-1], nrm[::-1].copy()[::-1]
+        row = np.arange(tri.shape[0])
+        pos[..., 3][covered] = 1 + row // TRIANGLE_SPLIT
+        nrm[..., 3][covered] = row % TRIANGLE_SPLIT
+        pos.setflags(write=False)
+        nrm.setflags(write=False)
+        return pos, nrm, np.ascontiguousarray(table, np.float32)
+
     @staticmethod
     def triangles(pos: np.ndarray, nrm: np.ndarray) -> np.ndarray:
         """Triangle index (int64, same shape) of covered texels of read_rsm's ``pos``, ``nrm``
@@ -316,12 +391,24 @@ class Rasterizer:
         (the same numbers, pixels in row-major order, rows top-first): (covered (H, W) bool,
         world positions (M, 3) float64, normals (M, 3) float64, albedo (M, 3) float32,
         receiver flags (M,) bool). Converts only what is covered, not whole frames."""
-        pos4, nrm4, alb4 = self.read(view, projection, width, height, False, (0, 1, 2))
+        if self.surface is None or self._vao is None:
+            pos4, nrm4, alb4 = self.read(view, projection, width, height, False, (0, 1, 2))
+        else:  # textured: the fifth target's barycentrics and triangle give the albedo
+            program = self._textured["gbuffer"]
+            program["origin"].value = (0.0, 0.0, 0.0)
+            fbo = self._fbo(width, height, 5)
+            self._draw(program, self._textured["gbuffer_vao"], fbo, view, projection, False)
+            pos4, nrm4, alb4, bary4 = self._targets(fbo, (0, 1, 2, 4), width, height)
         covered = pos4[..., 3] > 0.5
         pos = pos4[covered][:, :3].astype(np.float64) + self.origin
         nrm = nrm4[covered][:, :3].astype(np.float64)
         alb = alb4[covered]
-        return covered, pos, nrm, np.ascontiguousarray(alb[:, :3]), alb[:, 3] > 0.5
+        if self.surface is None or self._vao is None:
+            return covered, pos, nrm, np.ascontiguousarray(alb[:, :3]), alb[:, 3] > 0.5
+        b = bary4[covered]
+        tri = (b[:, 2].astype(np.int64) - 1) * TRIANGLE_SPLIT + b[:, 3].astype(np.int64)
+        albedo = self.albedo[tri] * self.surface.factor(tri, b[:, :2])
+        return covered, pos, nrm, albedo, alb[:, 3] > 0.5
 
     def surroundings(self, point, near: float, far: float, size: int = 32):
         """What ``point`` sees in every direction: the six faces of a cube map of ``size``^2
@@ -361,3 +448,6 @@ class Rasterizer:
         self._fbos.clear()
         self.program.release()
         self.rsm_program.release()
+        for program in [self._textured.pop(k) for k in ("gbuffer", "rsm")
+                        if k in self._textured]:
+            program.release()

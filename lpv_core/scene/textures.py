@@ -23,3 +23,269 @@ class Texture:
     interpolation: str = "Linear"
     extension: str = "REPEAT"
     digest: str = ""
+
+
+# Texture memory the engine's process keeps for all textures together: 256 MiB of float32
+# RGB (12 bytes a texel), 22.4M texels: twenty 1024^2 images whole, one 8192^2 image (768 MiB)
+# at 4096^2. A sixteenth of the propagation's 4 GB state guard (sweep.ordinates.STATE_BYTES),
+# beside the images Blender itself holds. Larger sets are box-filtered down (fitted_shapes).
+BUDGET_BYTES = 256 * 2 ** 20
+TEXEL_BYTES = 12
+
+
+def digest_of(texture: Texture) -> str:
+    """The texture's digest, or one of its pixels and sampling modes when it has none."""
+    if texture.digest:
+        return texture.digest
+    import hashlib
+
+    h = hashlib.blake2b(np.ascontiguousarray(texture.pixels, np.float32).tobytes(),
+                        digest_size=16)
+    h.update(f"{np.shape(texture.pixels)}".encode())
+    return h.hexdigest()
+
+
+def sample(texture: Texture, uv) -> np.ndarray:
+    """Colour (N, 3) float32 of ``texture`` at texture coordinates ``uv`` (N, 2), as Cycles'
+    Image Texture node reads it (intern/cycles/kernel/device/cpu/image.h): texel (i, j)'s
+    centre at ((i + 0.5) / W, (j + 0.5) / H), row 0 the bottom; Closest the texel under the
+    point, Linear bilinear, Cubic and Smart the uniform cubic B-spline over 4 x 4 texels
+    (Cycles' CPU kernel takes Smart as Cubic); REPEAT wraps, EXTEND clamps to the edge texel,
+    MIRROR reflects (the edge texel repeated), CLIP reads texels outside the image as 0.
+    Non-finite coordinates read at 0."""
+    px = np.asarray(texture.pixels, np.float32)
+    if px.ndim != 3 or px.shape[2] != 3 or px.shape[0] < 1 or px.shape[1] < 1:
+        raise ValueError(f"texture '{texture.name}': pixels must be (H, W, 3), not "
+                         f"{px.shape}")
+    if texture.interpolation not in INTERPOLATIONS:
+        raise ValueError(f"texture '{texture.name}': interpolation {texture.interpolation!r} "
+                         f"is not one of {', '.join(INTERPOLATIONS)}")
+    if texture.extension not in EXTENSIONS:
+        raise ValueError(f"texture '{texture.name}': extension {texture.extension!r} is not "
+                         f"one of {', '.join(EXTENSIONS)}")
+    h, w = px.shape[:2]
+    uv = np.asarray(uv, np.float64).reshape(-1, 2)
+    uv = np.clip(np.nan_to_num(uv, nan=0.0, posinf=0.0, neginf=0.0), -1e6, 1e6)
+    x, y = uv[:, 0] * w, uv[:, 1] * h
+    if texture.interpolation == "Closest":
+        ix, iy = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
+        return _read(px, ix, iy, texture.extension)
+    ix, tx = _split(x - 0.5)
+    iy, ty = _split(y - 0.5)
+    if texture.interpolation == "Linear":
+        taps, wx, wy = (0, 1), (1.0 - tx, tx), (1.0 - ty, ty)
+    else:
+        taps, wx, wy = (-1, 0, 1, 2), _bspline(tx), _bspline(ty)
+    out = np.zeros((uv.shape[0], 3), np.float64)
+    for b, wyb in zip(taps, wy):
+        for a, wxa in zip(taps, wx):
+            out += (wxa * wyb)[:, None] * _read(px, ix + a, iy + b, texture.extension)
+    return out.astype(np.float32)
+
+
+def _split(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Integer part (floor) and fraction of ``x``."""
+    i = np.floor(x)
+    return i.astype(np.int64), x - i
+
+
+def _bspline(t: np.ndarray) -> tuple:
+    """The uniform cubic B-spline's four weights at fraction ``t`` (Cycles'
+    SET_CUBIC_SPLINE_WEIGHTS)."""
+    return (((-t / 6.0 + 0.5) * t - 0.5) * t + 1.0 / 6.0, (0.5 * t - 1.0) * t * t + 2.0 / 3.0,
+            ((-0.5 * t + 0.5) * t + 0.5) * t + 1.0 / 6.0, t * t * t / 6.0)
+
+
+def _wrap(i: np.ndarray, n: int, extension: str) -> np.ndarray:
+    if extension == "REPEAT":
+        return np.mod(i, n)
+    if extension == "MIRROR":  # Cycles' wrap_mirror: -1 -> 0, n -> n - 1
+        m = np.abs(i + (i < 0)) % (2 * n)
+        return np.where(m >= n, 2 * n - m - 1, m)
+    return np.clip(i, 0, n - 1)  # EXTEND (and CLIP, whose outside texels are then zeroed)
+
+
+def _read(px: np.ndarray, ix: np.ndarray, iy: np.ndarray, extension: str) -> np.ndarray:
+    h, w = px.shape[:2]
+    out = px[_wrap(iy, h, extension), _wrap(ix, w, extension)]
+    if extension == "CLIP":
+        out = np.where(((ix >= 0) & (ix < w) & (iy >= 0) & (iy < h))[:, None], out, 0.0)
+    return out
+
+
+def mean(texture: Texture) -> np.ndarray:
+    """The texture's mean colour (3,) float32 (every texel alike)."""
+    return np.asarray(texture.pixels, np.float64).reshape(-1, 3).mean(axis=0).astype(np.float32)
+
+
+# ------------------------------------------------------------------ the budget
+
+
+def fitted_shapes(shapes: list[tuple[int, int]], budget: int = BUDGET_BYTES) -> list:
+    """(H, W) of each texture once they fit ``budget`` bytes together: the largest texture
+    halved (rounding up) until they fit; each keeps at least 1 x 1."""
+    out = [tuple(int(v) for v in s) for s in shapes]
+    limit = budget // TEXEL_BYTES
+    total = sum(h * w for h, w in out)
+    while total > limit:
+        k = max(range(len(out)), key=lambda i: out[i][0] * out[i][1])
+        h, w = out[k]
+        if h * w <= 1:
+            break
+        out[k] = ((h + 1) // 2, (w + 1) // 2)
+        total += out[k][0] * out[k][1] - h * w
+    return out
+
+
+def resampled(pixels: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """``pixels`` (H, W, 3) box-filtered down to ``shape`` (each new texel the area-weighted
+    mean of the texels it covers), float32."""
+    px = np.asarray(pixels, np.float32)
+    if tuple(px.shape[:2]) == tuple(shape):
+        return px
+    return _box(_box(px, shape[0], 0), shape[1], 1)
+
+
+def _box(px: np.ndarray, n: int, axis: int) -> np.ndarray:
+    """Box filter along ``axis`` to ``n`` samples by the piecewise-linear integral of the
+    texels (cumulative sums in float64, a band of rows at a time)."""
+    m = px.shape[axis]
+    if m == n:
+        return px
+    edges = np.arange(n + 1) * (m / n)
+    i = np.minimum(np.floor(edges).astype(np.int64), m - 1)
+    f = (edges - i)
+    moved = np.moveaxis(px, axis, 0)
+    out = np.empty((n,) + moved.shape[1:], np.float32)
+    band = max(1, (16 * 2 ** 20) // max(1, m * 3 * 8))  # about 16 MiB of float64 per band
+    for c0 in range(0, moved.shape[1], band):
+        part = moved[:, c0:c0 + band].astype(np.float64)
+        cum = np.concatenate([np.zeros((1,) + part.shape[1:]), np.cumsum(part, axis=0)])
+        at = cum[i] + f[:, None, None] * part[i]
+        out[:, c0:c0 + band] = ((at[1:] - at[:-1]) / (m / n)).astype(np.float32)
+    return np.moveaxis(out, 0, axis)
+
+
+# ------------------------------------------------------------- per-point albedo
+
+
+@dataclass
+class Layout:
+    """What the per-point albedo of a scene's triangles reads: its distinct textures (by
+    digest), each triangle's texture for the Diffuse Color and for the GI reflectance (-1:
+    none; the GI one is -1 where the bleed colour replaces albedo x texture), whether its
+    corner colours reach the GI, and the per-corner UVs and colours."""
+
+    textures: list
+    digests: list
+    albedo_texture: np.ndarray  # (T,) int32
+    gi_texture: np.ndarray  # (T,) int32
+    gi_corners: np.ndarray  # (T,) bool
+    uvs: np.ndarray | None
+    corner_colors: np.ndarray | None
+
+
+def layout(materials: list, material_index, uvs=None, corner_colors=None) -> Layout | None:
+    """The Layout of a scene's triangles; None when no material has a texture and there are
+    no corner colours (the albedo is then per triangle and nothing per point is done)."""
+    if corner_colors is None and not any(m.texture is not None for m in materials):
+        return None
+    textures, digests, slot = [], [], {}
+    albedo_id = np.full(len(materials) + 1, -1, np.int32)
+    gi_id = np.full(len(materials) + 1, -1, np.int32)
+    corners = np.ones(len(materials) + 1, bool)
+    for k, m in enumerate(materials):
+        corners[k] = m.bleed_color is None
+        if m.texture is None:
+            continue
+        d = digest_of(m.texture)
+        if d not in slot:
+            slot[d] = len(textures)
+            textures.append(m.texture)
+            digests.append(d)
+        albedo_id[k] = slot[d]
+        gi_id[k] = slot[d] if m.bleed_color is None else -1
+    mat = np.asarray(material_index, np.int64)
+    return Layout(textures, digests, albedo_id[mat], gi_id[mat], corners[mat],
+                  None if uvs is None else np.asarray(uvs, np.float32),
+                  None if corner_colors is None else np.asarray(corner_colors, np.float32))
+
+
+class Store:
+    """The textures one process holds, fitted to ``budget`` bytes, kept per digest: a texture
+    whose digest and fitted size did not change is neither resampled nor copied again."""
+
+    def __init__(self, budget: int = BUDGET_BYTES):
+        self.budget = budget
+        self._held: dict = {}  # digest -> Texture at its fitted size
+        self.prepared = 0  # textures resampled or copied in (the upload-once check)
+
+    def fitted(self, lay: Layout) -> list:
+        """The Layout's textures at their fitted sizes (those no longer used are let go)."""
+        shapes = fitted_shapes([np.shape(t.pixels)[:2] for t in lay.textures], self.budget)
+        held, out = {}, []
+        for tex, d, shape in zip(lay.textures, lay.digests, shapes):
+            entry = self._held.get(d)
+            if entry is None or entry.pixels.shape[:2] != shape:
+                entry = Texture(tex.name, resampled(tex.pixels, shape), tex.interpolation,
+                                tex.extension, d)
+                self.prepared += 1
+            held[d] = entry
+            out.append(entry)
+        self._held = held
+        return out
+
+    def info(self, lay: Layout) -> dict:
+        """Stats: textures held, their texels and the ones the budget made smaller."""
+        smaller = [t.name for t, d in zip(lay.textures, lay.digests)
+                   if self._held[d].pixels.shape != np.shape(t.pixels)]
+        return {"count": len(lay.textures), "budget_mib": self.budget / 2 ** 20,
+                "texels": int(sum(self._held[d].pixels[..., 0].size for d in lay.digests)),
+                "resampled": smaller}
+
+
+class Surface:
+    """A Layout with its fitted textures: the factor (albedo x corner colour x texture over
+    the per-triangle albedo or GI reflectance) at points given by triangle and barycentric
+    coordinates."""
+
+    def __init__(self, lay: Layout, store: Store):
+        self.layout = lay
+        self.textures = store.fitted(lay)
+        self.info = store.info(lay)
+
+    def factor(self, tri: np.ndarray, bary: np.ndarray, gi: bool = False) -> np.ndarray:
+        """(N, 3) float32 multiplier at the points of triangles ``tri`` (N,) with barycentric
+        coordinates ``bary`` (N, 2) of corners 1 and 2; ``gi``: of the GI reflectance (the
+        bleed colour, where set, replaces albedo x corner colour x texture)."""
+        lay = self.layout
+        tri = np.asarray(tri, np.int64)
+        b = np.asarray(bary, np.float64).reshape(-1, 2)
+        w = np.stack([1.0 - b[:, 0] - b[:, 1], b[:, 0], b[:, 1]], axis=1)
+        out = np.ones((tri.shape[0], 3), np.float32)
+        if lay.corner_colors is not None:
+            col = np.einsum("nk,nkc->nc", w, lay.corner_colors[tri]).astype(np.float32)
+            if gi:
+                col[~lay.gi_corners[tri]] = 1.0
+            out *= col
+        ids = (lay.gi_texture if gi else lay.albedo_texture)[tri]
+        used = np.unique(ids[ids >= 0])
+        if used.size:
+            uv = (np.zeros((tri.shape[0], 2)) if lay.uvs is None
+                  else np.einsum("nk,nkc->nc", w, lay.uvs[tri]))
+            for k in used:
+                sel = ids == k
+                out[sel] *= sample(self.textures[k], uv[sel])
+        return out
+
+
+def barycentric(corners: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Barycentric coordinates (N, 2) of corners 1 and 2 of ``points`` (N, 3) in the
+    triangles ``corners`` (N, 3, 3) (the points' projection onto each triangle's plane)."""
+    c = np.asarray(corners, np.float64)
+    e1, e2, p = c[:, 1] - c[:, 0], c[:, 2] - c[:, 0], np.asarray(points, np.float64) - c[:, 0]
+    d11, d12, d22 = (e1 * e1).sum(1), (e1 * e2).sum(1), (e2 * e2).sum(1)
+    p1, p2 = (p * e1).sum(1), (p * e2).sum(1)
+    det = d11 * d22 - d12 * d12
+    det = np.where(det > 0, det, 1.0)
+    return np.stack([(d22 * p1 - d12 * p2) / det, (d11 * p2 - d12 * p1) / det], axis=1)

@@ -1,0 +1,341 @@
+"""Image textures: sampled as Cycles' Image Texture node samples (hand-derived values and a
+tiny Cycles render), fitted to the texture budget, per pixel in the G-buffer, per texel in the
+RSM, carried by the worker's scene files once per digest; untextured scenes take none of it."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from lpv_core import engine
+from lpv_core.render import deferred
+from lpv_core.scene import GISettings, Light, Material, make_scene
+from lpv_core.scene import textures as tx
+from lpv_core.scene.model import Camera
+from lpv_core.scene.textures import Texture
+from tools import core_scenes as demo
+
+# value v of texel (row j from the bottom, column i) = 10 j + i + 1; channels v, 2v, 3v
+RAMP = np.array([[1.0, 2.0, 3.0], [11.0, 12.0, 13.0]], np.float32)[..., None] * np.float32(
+    [1.0, 2.0, 3.0])
+
+
+def at(interpolation, extension, u, v):
+    got = tx.sample(Texture("ramp", RAMP, interpolation, extension), [(u, v)])[0]
+    assert got.dtype == np.float32
+    return float(got[0]), got
+
+
+# (u, v) -> value per extension (REPEAT, EXTEND, CLIP, MIRROR), derived by hand from Cycles'
+# kernel rules: x = u W, Closest texel floor(x), Linear/Cubic taps around floor(x - 0.5)
+CASES = {
+    "Closest": [((0.1, 0.2), (1, 1, 1, 1)), ((0.7, 0.8), (13, 13, 13, 13)),
+                ((1.1, 0.2), (1, 3, 0, 3)), ((-0.1, 0.6), (13, 11, 0, 11)),
+                ((-0.7, 0.2), (1, 1, 0, 3))],
+    "Linear": [((0.5, 0.25), (2, 2, 2, 2)), ((2 / 3, 0.5), (7.5, 7.5, 7.5, 7.5)),
+               ((0.0, 0.25), (2, 1, 0.5, 1)), ((1.0, 1.0), (7, 13, 3.25, 13)),
+               ((1.25, 0.25), (1.25, 3, 0, 2.75))],
+    # texel (1, 0)'s centre: B-spline weights (1/6, 2/3, 1/6) over columns 0..2 give 2 and
+    # 12 per row; rows -1, 0, 1 then wrap to row 1 / clamp / read 0 / mirror to row 0
+    "Cubic": [((0.5, 0.25), (32 / 6, 22 / 6, 20 / 6, 22 / 6))],
+}
+
+
+@pytest.mark.parametrize("interpolation", ["Closest", "Linear", "Cubic", "Smart"])
+def test_sampling_hand_derived(interpolation):
+    for (u, v), expected in CASES["Cubic" if interpolation == "Smart" else interpolation]:
+        for extension, value in zip(tx.EXTENSIONS, expected):
+            got, rgb = at(interpolation, extension, u, v)
+            assert got == pytest.approx(value, abs=1e-5), (interpolation, extension, u, v)
+            np.testing.assert_allclose(rgb, np.float32([1, 2, 3]) * value, atol=1e-4)
+
+
+def test_sampling_bad_input_is_named_and_finite():
+    with pytest.raises(ValueError, match="'ramp'.*interpolation"):
+        tx.sample(Texture("ramp", RAMP, "Bilinear"), [(0.5, 0.5)])
+    with pytest.raises(ValueError, match="'ramp'.*extension"):
+        tx.sample(Texture("ramp", RAMP, "Linear", "WRAP"), [(0.5, 0.5)])
+    got = tx.sample(Texture("ramp", RAMP), [(np.nan, np.inf), (1e30, -1e30)])
+    assert np.isfinite(got).all()
+
+
+def test_budget_fits_and_box_filters():
+    limit = tx.BUDGET_BYTES // tx.TEXEL_BYTES
+    assert tx.fitted_shapes([(8192, 8192)]) == [(4096, 4096)]  # 768 MiB -> 192 MiB
+    assert tx.fitted_shapes([(1024, 1024)] * 20) == [(1024, 1024)] * 20  # 240 MiB fits
+    shapes = tx.fitted_shapes([(1024, 1024)] * 30 + [(3, 5)])
+    assert sum(h * w for h, w in shapes) <= limit
+    assert set(shapes) == {(1024, 1024), (512, 512), (3, 5)}
+    px = np.arange(16, dtype=np.float32).reshape(4, 4, 1).repeat(3, axis=2)
+    np.testing.assert_allclose(tx.resampled(px, (2, 2))[..., 0], [[2.5, 4.5], [10.5, 12.5]])
+    a, b, c = 1.0, 4.0, 10.0  # 3 texels onto 2: each new one covers 1.5 old ones
+    row = np.array([[[a] * 3, [b] * 3, [c] * 3]], np.float32)
+    np.testing.assert_allclose(tx.resampled(row, (1, 2))[0, :, 0],
+                               [(a + 0.5 * b) / 1.5, (0.5 * b + c) / 1.5], rtol=1e-6)
+
+
+def test_store_prepares_each_digest_once():
+    store = tx.Store(budget=80 * tx.TEXEL_BYTES)  # 80 texels
+    mats = [Material("a", texture=Texture("a", np.ones((8, 8, 3), np.float32), digest="A"))]
+    first = tx.Surface(tx.layout(mats, np.zeros(1, np.int32)), store)
+    again = tx.Surface(tx.layout(mats, np.zeros(1, np.int32)), store)
+    assert store.prepared == 1 and again.textures[0] is first.textures[0]
+    mats.append(Material("b", texture=Texture("b", np.ones((8, 8, 3), np.float32),
+                                              digest="B")))
+    both = tx.Surface(tx.layout(mats, np.array([0, 1], np.int32)), store)
+    # 128 texels for 80: the first (largest, first of equals) is halved, so it is prepared anew
+    assert [t.pixels.shape[:2] for t in both.textures] == [(4, 4), (8, 8)]
+    assert both.info["resampled"] == ["a"] and store.prepared == 3
+
+
+# --------------------------------------------------------------------- core scene
+
+
+RED, GREEN = np.float32([0.8, 0.05, 0.05]), np.float32([0.05, 0.8, 0.05])
+
+
+def checker_room(texture: Texture | None, antialias: int = 1, resolution=(48, 40)):
+    """A 2 m floor (z = 0, UV = ((x + 1) / 2, (y + 1) / 2)) whose left half (x < 0) the
+    2 x 1 texture makes red and right half green, a white back wall (y = 1), and a 30 degree
+    spot 1.5 m above the red half that lights no green and none of the wall."""
+    floor = demo.quad((-1, -1, 0), (1, -1, 0), (1, 1, 0), (-1, 1, 0))
+    wall = demo.quad((-1, 1, 0), (1, 1, 0), (1, 1, 2), (-1, 1, 2))
+    pos = np.concatenate([floor, wall])
+    uvs = np.stack([(pos[..., 0] + 1) / 2, (pos[..., 1] + 1) / 2], -1)
+    floor_mat = Material("floor", np.ones(3, np.float32), texture=texture)
+    if texture is None:
+        floor_mat.albedo = 0.5 * (RED + GREEN)
+    spot = Light("Spot", "SPOT", demo.light_matrix((-0.55, 0.0, 1.5), (0, 0, -1)),
+                 power=200.0, spot_size=np.radians(30), spot_blend=0.0)
+    cam = Camera.look_at((0.0, -3.0, 2.2), (0.0, 0.4, 0.5), resolution=resolution)
+    return make_scene(pos, material_index=np.array([0, 0, 1, 1]),
+                      materials=[floor_mat, Material("white")], lights=[spot], camera=cam,
+                      settings=GISettings(antialias=antialias, cascades=1),
+                      uvs=uvs if texture is not None else None)
+
+
+CHECKER = Texture("checker", np.stack([RED, GREEN])[None], "Closest", "REPEAT", "checker-1")
+
+
+def test_diffuse_color_per_pixel_is_the_checker():
+    """Diffuse Color at every pixel is red where the G-buffer's point has x < 0 on the floor,
+    green where x > 0, the wall's 0.8 on the wall (pixels next to another class left out)."""
+    scene = checker_room(CHECKER)
+    eng = engine.Engine()
+    passes = deferred.render(eng, scene, eng.update(scene))
+    mask, pos, _, _, _ = eng.raster.gbuffer(scene.camera.view, scene.camera.projection, 48, 40)
+    cls = np.full(mask.shape, -1)
+    on_floor = pos[:, 2] < 1e-4
+    cls[mask] = np.where(on_floor, np.where(pos[:, 0] < 0, 0, 1), 2)
+    pad = np.pad(cls, 1, mode="edge")
+    inner = np.ones(cls.shape, bool)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            inner &= pad[1 + dy:41 + dy, 1 + dx:49 + dx] == cls
+    expected = np.array([RED, GREEN, np.full(3, 0.8, np.float32)])
+    color = passes["Diffuse Color"]
+    for k in range(3):
+        sel = inner & (cls == k)
+        assert sel.sum() > 40
+        np.testing.assert_allclose(color[sel], np.broadcast_to(expected[k], (sel.sum(), 3)),
+                                   atol=1e-6)
+    assert eng.raster.surface is not None and "textures" in eng.update(scene).stats.info
+
+
+def wall_indirect(texture):
+    scene = checker_room(texture)
+    eng = engine.Engine()
+    passes = deferred.render(eng, scene, eng.update(scene))
+    mask, pos, _, _, _ = eng.raster.gbuffer(scene.camera.view, scene.camera.projection, 48, 40)
+    wall = np.zeros(mask.shape, bool)
+    wall[mask] = (pos[:, 1] > 1 - 1e-4) & (pos[:, 2] > 0.2)
+    return passes["Diffuse Indirect"][wall].mean(axis=0), passes["Diffuse Direct"][wall].max()
+
+
+def test_rsm_bleeds_the_texture_where_the_light_falls():
+    """The spot lights only the red half: the white wall's indirect light is red (per-texel
+    reflectance), not the mean colour's yellow an untextured floor of the mean bleeds."""
+    red, direct = wall_indirect(CHECKER)
+    assert direct == 0.0 and red[0] > 0
+    assert red[0] > 8 * red[1]  # 0.8 / 0.05 = 16 for a floor lit on its red half only
+    mean, _ = wall_indirect(None)
+    assert 0.8 < mean[0] / mean[1] < 1.25
+    assert abs(red.sum() - mean.sum()) > 0  # a texture change recomputed the light
+
+
+def test_bleed_colour_replaces_the_texture_in_gi_only():
+    scene = checker_room(dataclasses.replace(CHECKER))
+    scene.materials[0].bleed_color = np.float32([0.1, 0.1, 0.9])
+    eng = engine.Engine()
+    passes = deferred.render(eng, scene, eng.update(scene))
+    mask, pos, _, _, _ = eng.raster.gbuffer(scene.camera.view, scene.camera.projection, 48, 40)
+    wall = np.zeros(mask.shape, bool)
+    wall[mask] = (pos[:, 1] > 1 - 1e-4) & (pos[:, 2] > 0.2)
+    e = passes["Diffuse Indirect"][wall].mean(axis=0)
+    assert e[2] > 8 * e[0]  # blue bleed, not the red texture
+    assert (passes["Diffuse Color"][..., 0] > 0.7).sum() > 40  # the red is still seen
+
+
+def test_texture_change_recomputes_and_same_texture_reuses():
+    scene = checker_room(CHECKER)
+    eng = engine.Engine()
+    eng.update(scene)
+    stats = engine.Stats()
+    eng.update(checker_room(CHECKER), stats)
+    assert "propagation" not in stats.ms and eng.raster.texture_store.prepared == 1
+    swapped = Texture("checker", np.stack([GREEN, RED])[None], "Closest", "REPEAT", "checker-2")
+    stats = engine.Stats()
+    green = eng.update(checker_room(swapped), stats)
+    assert "rsm" in stats.ms and eng.raster.texture_store.prepared == 2
+    assert green.values is not None
+
+
+def test_corner_colours_multiply_the_albedo_per_point():
+    """A Color Attribute: the wall's corners coloured (1, 0.5, 0.25) at z = 2 and 1 at
+    z = 0: Diffuse Color on the wall is 0.8 x the colour interpolated at the point's height."""
+    base = checker_room(None)
+    cc = np.ones(base.positions.shape, np.float32)
+    top = base.positions[..., 2] > 1
+    cc[top] = (1.0, 0.5, 0.25)
+    cc[:2] = 1.0
+    scene = dataclasses.replace(base, corner_colors=cc)
+    eng = engine.Engine()
+    passes = deferred.render(eng, scene, eng.update(scene))
+    mask, pos, _, _, _ = eng.raster.gbuffer(scene.camera.view, scene.camera.projection, 48, 40)
+    wall = (pos[:, 1] > 1 - 1e-4) & (pos[:, 2] > 0.1) & (pos[:, 2] < 1.9)
+    h = pos[wall, 2:3] / 2.0
+    expected = 0.8 * ((1 - h) * 1.0 + h * np.array([1.0, 0.5, 0.25]))
+    got = passes["Diffuse Color"][mask][wall]
+    np.testing.assert_allclose(got, expected, atol=2e-5)
+
+
+def test_untextured_scene_takes_no_textured_path():
+    """No texture, no corner colours: no Surface, no textured programs, no extra targets."""
+    scene = demo.cornell_box("SPOT", (16, 16), GISettings())
+    eng = engine.Engine()
+    deferred.render(eng, scene, eng.update(scene))
+    assert eng.raster.surface is None and eng.raster._textured == {}
+    assert set(eng.raster._fbos) <= {(k[0], k[1], n) for k in eng.raster._fbos for n in (1, 2, 4)}
+
+
+def test_white_texture_gives_the_untextured_passes():
+    """A texture of ones (and corner colours of ones) on every material takes the textured
+    path and gives the untextured render's passes (float32 rounding apart)."""
+    plain = demo.cornell_box("SPOT", (24, 24), GISettings(antialias=1))
+    white = Texture("white", np.ones((2, 2, 3), np.float32), "Linear", "REPEAT", "ones")
+    mats = [dataclasses.replace(m, texture=white) for m in plain.materials]
+    textured = dataclasses.replace(plain, materials=mats,
+                                   uvs=np.zeros(plain.positions.shape[:2] + (2,), np.float32),
+                                   corner_colors=np.ones(plain.positions.shape, np.float32))
+    out = []
+    for scene in (plain, textured):
+        eng = engine.Engine()
+        out.append(deferred.render(eng, scene, eng.update(scene)))
+    assert eng.raster.surface is not None
+    for name in deferred.PASS_NAMES:
+        ref = out[0][name]
+        np.testing.assert_allclose(out[1][name], ref, atol=1e-5 * max(ref.max(), 1e-6),
+                                   err_msg=name)
+
+
+# --------------------------------------------------------------------------- worker
+
+
+def test_worker_round_trip_keeps_textures_and_writes_pixels_once(tmp_path):
+    from lpv_core import worker
+
+    scene = checker_room(CHECKER)
+    scene.corner_colors = np.full(scene.positions.shape, 0.5, np.float32)
+    path = str(tmp_path / "scene.npz")
+    worker.save_scene(path, scene)
+    file = tmp_path / worker.TEXTURE_FOLDER / "checker-1.npy"
+    first = file.stat()
+    back = worker.load_scene(path)
+    tex = back.materials[0].texture
+    assert back.materials[1].texture is None
+    assert (tex.name, tex.interpolation, tex.extension, tex.digest) == (
+        "checker", "Closest", "REPEAT", "checker-1")
+    np.testing.assert_array_equal(tex.pixels, CHECKER.pixels)
+    np.testing.assert_array_equal(back.uvs, scene.uvs)
+    np.testing.assert_array_equal(back.corner_colors, scene.corner_colors)
+    worker.save_scene(path, scene)  # the same digest: the pixels file is not rewritten
+    again = file.stat()
+    assert (again.st_mtime_ns, again.st_ino) == (first.st_mtime_ns, first.st_ino)
+    held: dict = {}
+    one = worker.load_scene(path, held)
+    two = worker.load_scene(path, held)  # the worker keeps the textures it holds
+    assert two.materials[0].texture.pixels is one.materials[0].texture.pixels
+    assert list(held) == ["checker-1"]
+
+
+# ---------------------------------------------------------------------------- Cycles
+
+
+@pytest.mark.bpy
+def test_sampling_matches_cycles_diffuse_color(tmp_path):
+    """A 4 x 4 image on 16 planes (one per interpolation and extension), UVs from -0.25 to
+    1.25, seen by an orthographic camera at 24 px per plane: Cycles' Diffuse Color at each
+    pixel centre (a 0.01 px box filter) equals sample() at that centre's UV. Cycles 5.0
+    interpolates stochastically (one texel per sample, drawn with the filter's weights): 256
+    samples leave a mean error of 1e-4 (Linear) and 1e-3 (Cubic); the modes differ from each
+    other by 0.03 to 0.1 on this image. Closest is exact."""
+    bpy = pytest.importorskip("bpy")
+    from lpv_core.render import exr
+
+    rng = np.random.default_rng(7)
+    pixels = rng.uniform(0.05, 0.95, (4, 4, 3)).astype(np.float32)
+    bpy.ops.wm.read_homefile(use_empty=True)
+    scene = bpy.context.scene
+    img = bpy.data.images.new("tex4", 4, 4, alpha=True, float_buffer=True)
+    img.colorspace_settings.name = "Non-Color"
+    rgba = np.concatenate([pixels, np.ones((4, 4, 1), np.float32)], axis=2)
+    img.pixels.foreach_set(rgba.ravel())
+    combos = [(i, e) for i in tx.INTERPOLATIONS for e in tx.EXTENSIONS]
+    for k, (interp, ext) in enumerate(combos):
+        gx, gy = k % 4, k // 4
+        mesh = bpy.data.meshes.new(f"p{k}")
+        x0, y0 = gx - 2.0, gy - 2.0
+        mesh.from_pydata([(x0, y0, 0), (x0 + 1, y0, 0), (x0 + 1, y0 + 1, 0), (x0, y0 + 1, 0)],
+                         [], [(0, 1, 2, 3)])
+        uv = mesh.uv_layers.new(name="UVMap")
+        uv.data.foreach_set("uv", [-0.25, -0.25, 1.25, -0.25, 1.25, 1.25, -0.25, 1.25])
+        mat = bpy.data.materials.new(f"m{k}")
+        mat.use_nodes = True
+        nodes = mat.node_tree.nodes
+        nodes.clear()
+        node = nodes.new("ShaderNodeTexImage")
+        node.image, node.interpolation, node.extension = img, interp, ext
+        bsdf = nodes.new("ShaderNodeBsdfDiffuse")
+        out = nodes.new("ShaderNodeOutputMaterial")
+        mat.node_tree.links.new(node.outputs["Color"], bsdf.inputs["Color"])
+        mat.node_tree.links.new(bsdf.outputs["BSDF"], out.inputs["Surface"])
+        mesh.materials.append(mat)
+        ob = bpy.data.objects.new(f"p{k}", mesh)
+        scene.collection.objects.link(ob)
+    cam = bpy.data.cameras.new("cam")
+    cam.type, cam.ortho_scale = "ORTHO", 4.0
+    cam_ob = bpy.data.objects.new("cam", cam)
+    cam_ob.location = (0.0, 0.0, 5.0)
+    scene.collection.objects.link(cam_ob)
+    scene.camera = cam_ob
+    r = scene.render
+    r.engine, r.resolution_x, r.resolution_y, r.resolution_percentage = "CYCLES", 96, 96, 100
+    scene.cycles.device, scene.cycles.samples = "CPU", 256
+    scene.cycles.use_denoising = scene.cycles.use_adaptive_sampling = False
+    scene.cycles.pixel_filter_type, scene.cycles.filter_width = "BOX", 0.01
+    scene.view_layers[0].use_pass_diffuse_color = True
+    r.image_settings.media_type = "MULTI_LAYER_IMAGE"
+    r.image_settings.color_depth = "32"
+    r.filepath = str(tmp_path / "tex.exr")
+    bpy.ops.render.render(write_still=True)
+    color = exr.read_multilayer(tmp_path / "tex.exr")["Diffuse Color"][..., :3]
+    centre = -0.25 + 1.5 * (np.arange(24) + 0.5) / 24  # UV at each pixel centre of a plane
+    for k, (interp, ext) in enumerate(combos):
+        gx, gy = k % 4, k // 4
+        rows = slice(96 - 24 * (gy + 1), 96 - 24 * gy)  # rows top-first: high y first
+        got = color[rows, 24 * gx:24 * (gx + 1)][::-1]  # now row 0 = lowest v
+        u, v = np.meshgrid(centre, centre)
+        want = tx.sample(Texture("tex4", pixels, interp, ext),
+                         np.stack([u.ravel(), v.ravel()], 1)).reshape(24, 24, 3)
+        err = np.abs(got - want)
+        assert err.mean() < 2e-3 and err.max() < 1e-2, (interp, ext, err.mean(), err.max())
