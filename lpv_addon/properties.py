@@ -241,6 +241,12 @@ class LPVMaterialSettings(bpy.types.PropertyGroup):
         name="Bleed Intensity", default=1.0, min=0.0, soft_max=4.0, update=_changed,
         description="How much light this material bounces (scales its colour or Bleed Color)",
     )
+    emission_gi_intensity: FloatProperty(
+        name="Emission GI Intensity", default=1.0, soft_min=0.0, soft_max=4.0, min=-100.0,
+        max=100.0, update=_changed,
+        description="How much of this material's emitted light reaches GI (0: none; its "
+                    "look unchanged)",
+    )
 
 
 CLASSES = (LPVSceneSettings, LPVLightSettings, LPVObjectSettings, LPVMaterialSettings)

@@ -283,6 +283,7 @@ class LPV_PT_material(_Properties, bpy.types.Panel):
         sub.active = props.use_bleed_color
         sub.prop(props, "bleed_color")
         layout.prop(props, "bleed_intensity")
+        layout.prop(props, "emission_gi_intensity")
 
 
 CLASSES = (

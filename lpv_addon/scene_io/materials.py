@@ -42,11 +42,36 @@ NO_DIFFUSE = frozenset({
     "ShaderNodeBsdfMetallic", "ShaderNodeHoldout", "ShaderNodeBsdfRayPortal",
     "ShaderNodeBackground", "ShaderNodeBsdfHair", "ShaderNodeBsdfHairPrincipled",
 })
+# What a Principled dielectric layer (specular, or coat) lets through to the layer below, seen
+# head-on: 1 - E(roughness, F0), Cycles' layering by the layer's albedo. Measured from Cycles'
+# Diffuse Color pass (python -m tools.measure_principled_layers, Blender 5.3.0; roughness 0
+# is 1 - F0 exactly), rows by _ROUGHNESS, columns by _F0 = ((ior - 1) / (ior + 1))^2.
+_ROUGHNESS = np.linspace(0.0, 1.0, 9)
+_F0 = ((np.array([1.0, 1.1, 1.2, 1.33, 1.5, 1.75, 2.0, 2.5, 3.0, 4.0]) - 1.0)
+       / (np.array([1.0, 1.1, 1.2, 1.33, 1.5, 1.75, 2.0, 2.5, 3.0, 4.0]) + 1.0)) ** 2
+_TRANSMITTED = np.array([
+    [1.0, 0.99773, 0.99174, 0.97994, 0.96, 0.92562, 0.88889, 0.81633, 0.75, 0.64],
+    [1.0, 0.99773, 0.99174, 0.97994, 0.96001, 0.92563, 0.88891, 0.81636, 0.75005, 0.64006],
+    [1.0, 0.99774, 0.99175, 0.97999, 0.96011, 0.92585, 0.88924, 0.81691, 0.75077, 0.641],
+    [1.0, 0.99776, 0.99185, 0.98026, 0.96069, 0.92698, 0.89095, 0.81968, 0.75439, 0.6457],
+    [1.0, 0.99785, 0.99222, 0.98119, 0.96261, 0.9306, 0.89631, 0.82822, 0.76547, 0.66006],
+    [1.0, 0.99808, 0.99308, 0.98331, 0.96683, 0.93836, 0.9077, 0.84621, 0.78878, 0.6905],
+    [1.0, 0.99845, 0.99442, 0.98654, 0.97319, 0.94993, 0.92461, 0.87298, 0.82371, 0.73686],
+    [1.0, 0.99887, 0.99591, 0.9901, 0.98016, 0.96262, 0.94322, 0.90277, 0.86306, 0.79044],
+    [1.0, 0.99923, 0.9972, 0.99318, 0.98621, 0.9737, 0.95962, 0.9295, 0.89901, 0.84104],
+])
+# The sheen layer's albedo head-on per sheen roughness (_ROUGHNESS; same tool): Cycles counts
+# sheen as diffuse, over a base scaled by 1 - that albedo.
+_SHEEN_ALBEDO = np.array([0.0, 0.0, 0.00026, 0.00328, 0.01864, 0.06185, 0.13803, 0.237,
+                          0.34187])
 DIFFUSE_COLOR = frozenset({  # shaders whose Color input is their Diffuse Color
     "ShaderNodeBsdfDiffuse", "ShaderNodeBsdfTranslucent", "ShaderNodeSubsurfaceScattering",
 })
 
-_textures: OrderedDict[str, np.ndarray] = OrderedDict()  # image digest -> (H, W, 4) pixels
+# Colour spaces whose byte values are used as they are.
+_LINEAR_SPACES = frozenset({"Non-Color", "Linear Rec.709", "Linear CIE-XYZ E", "Raw"})
+# image digest -> ((H, W, 3) colour, mean alpha)
+_textures: OrderedDict[str, tuple[np.ndarray, float]] = OrderedDict()
 
 
 @dataclass
@@ -178,19 +203,26 @@ class _Evaluator:
         ior = max(val("IOR", 1.5), 1e-6)
         f0 = ((ior - 1.0) / (ior + 1.0)) ** 2 * 2.0 * max(val("Specular IOR Level", 0.5), 0.0)
         tint = self.color(inp["Specular Tint"], stack).mean() if "Specular Tint" in inp else 1
+        rough = val("Roughness", 0.5)
         k = (1.0 - metallic) * (1.0 - transmission) * alpha
-        weight = k * np.clip(1.0 - np.clip(f0, 0.0, 1.0) * np.asarray(tint), 0.0, 1.0)
+        # The specular layer's albedo scales with its tint (Cycles' F0 x tint).
+        spec = 1.0 - layer_transmitted(rough, f0)
+        weight = k * np.clip(1.0 - spec * np.asarray(tint), 0.0, 1.0)
+        over = 1.0  # the coat above both the base and the sheen
         coat = np.clip(val("Coat Weight"), 0.0, 1.0)
         if coat > 0:
             coat_ior = max(val("Coat IOR", 1.5), 1e-6)
             cf0 = ((coat_ior - 1.0) / (coat_ior + 1.0)) ** 2
             coat_tint = self.color(inp["Coat Tint"], stack).mean()
-            weight = weight * (1.0 - coat * cf0) * (1.0 - coat + coat * coat_tint)
-        if val("Sheen Weight") > 0:
-            self.note(f"'{node.name}': sheen left out of the diffuse albedo (its albedo is "
-                      "about 0.02 of the sheen tint)")
+            coat_albedo = 1.0 - layer_transmitted(val("Coat Roughness", 0.03), cf0)
+            over = (1.0 - coat * coat_albedo) * (1.0 - coat + coat * coat_tint)
+        sheen = np.clip(val("Sheen Weight"), 0.0, 1.0) * np.interp(
+            np.clip(val("Sheen Roughness", 0.5), 0.0, 1.0), _ROUGHNESS, _SHEEN_ALBEDO)
         base = self.color(inp["Base Color"], stack)
-        base.const = base.const * weight
+        base.const = base.const * weight * (1.0 - sheen) * over
+        if sheen > 0:
+            sheen_tint = self.color(inp["Sheen Tint"], stack).mean()
+            base = self.combine(base, 1.0, _const(sheen * sheen_tint * over * alpha), 1.0)
         emission = np.zeros(3)
         if "Emission Strength" in inp:
             strength = val("Emission Strength")
@@ -269,7 +301,8 @@ class _Evaluator:
         if node.bl_idname == "ShaderNodeMix":
             if node.data_type != "RGBA":
                 return None
-            fac_s, a_s, b_s = (node.inputs[i] for i in ("Factor_Float", "A_Color", "B_Color"))
+            fac_s, a_s, b_s = (_by_identifier(node.inputs, i)
+                               for i in ("Factor_Float", "A_Color", "B_Color"))
         else:
             fac_s, a_s, b_s = node.inputs[0], node.inputs[1], node.inputs[2]
         blend = node.blend_type
@@ -327,8 +360,8 @@ class _Evaluator:
         if image is None:
             self.note(f"Image Texture '{node.name}' has no image: black, as Cycles shows it")
             return _const(np.zeros(3))
-        digest, rgba = image_pixels(image)
-        if rgba is None:
+        digest, rgb, _ = image_pixels(image)
+        if rgb is None:
             path = bpy.path.abspath(image.filepath) if image.filepath else "(no file)"
             line = f"image '{image.name}' is missing ({path}): magenta, as Cycles shows it"
             self.note(line)
@@ -337,19 +370,19 @@ class _Evaluator:
         uv = self.uv_source(node, stack)
         if uv is None:
             self.note(f"image '{image.name}' is not mapped by a UV map: its mean colour used")
-            return _const(rgba[..., :3].reshape(-1, 3).mean(axis=0, dtype=np.float64))
+            return _const(rgb.reshape(-1, 3).mean(axis=0, dtype=np.float64))
         if self.uv is not None and self.uv[0] != uv[0]:
             self.note(f"images read different UV maps: '{image.name}' reads "
                       f"'{self.uv[0] or 'render'}' as the first image does")
         elif self.uv is None:
             self.uv = uv
-        return _Color(np.ones(3), rgba[..., :3], node, digest)
+        return _Color(np.ones(3), rgb, node, digest)
 
     def image_alpha_mean(self, node) -> float:
         if node.image is None:
             return 0.0
-        _, rgba = image_pixels(node.image)
-        return 1.0 if rgba is None else float(rgba[..., 3].mean(dtype=np.float64))
+        _, rgb, alpha = image_pixels(node.image)
+        return 1.0 if rgb is None else alpha
 
     def uv_source(self, node, stack) -> tuple[str, np.ndarray | None] | None:
         """(UV map name, "" for the render one; 3x3 affine or None) the image node reads, or
@@ -405,6 +438,17 @@ def _mapping_matrix(node, ev: _Evaluator, stack) -> np.ndarray | None:
     # (u, v, 0, 1) -> the first two components.
     return np.array([[m4[0, 0], m4[0, 1], m4[0, 3]], [m4[1, 0], m4[1, 1], m4[1, 3]],
                      [0.0, 0.0, 1.0]])
+
+
+def layer_transmitted(roughness: float, f0: float) -> float:
+    """Fraction a dielectric layer of ``roughness`` and normal-incidence reflectance ``f0``
+    passes to the layer below (bilinear in the measured table; 1 - f0 beyond its last F0)."""
+    r = float(np.clip(roughness, 0.0, 1.0))
+    f0 = float(np.clip(f0, 0.0, 1.0))
+    if f0 > _F0[-1]:
+        return 1.0 - f0
+    col = np.array([np.interp(f0, _F0, row) for row in _TRANSMITTED])
+    return float(np.interp(r, _ROUGHNESS, col))
 
 
 def _by_identifier(sockets, identifier: str):
@@ -509,29 +553,36 @@ def image_digest(image) -> str:
     return _hash(repr(parts))
 
 
-def image_pixels(image) -> tuple[str, np.ndarray | None]:
-    """(digest, (H, W, 4) float32 pixels as the Image Texture node's Color output gives them:
-    scene-linear, straight alpha, rows bottom-first, at most TEXTURE_BUDGET pixels); pixels
-    None for a missing or empty image. Cached by digest across extractions (bounded)."""
+def image_pixels(image) -> tuple[str, np.ndarray | None, float]:
+    """(digest, (H, W, 3) float32 colour as the Image Texture node's Color output gives it:
+    scene-linear, alpha associated as Cycles does, rows bottom-first, at most TEXTURE_BUDGET
+    pixels, None for a missing or empty image; the mean alpha). Cached by digest across
+    extractions (bounded)."""
     digest = image_digest(image)
     dirty = image.is_dirty
     if not dirty and digest in _textures:
         _textures.move_to_end(digest)
-        return digest, _textures[digest]
+        return (digest, *_textures[digest])
     w, h = image.size[:]
     channels = image.channels
     if w <= 0 or h <= 0 or channels <= 0:
-        return digest, None
+        return digest, None, 1.0
     px = np.empty(w * h * channels, np.float32)
     image.pixels.foreach_get(px)
     if dirty:
         digest = _hash(digest + hashlib.blake2b(px.tobytes(), digest_size=12).hexdigest())
     rgba = _as_rgba(px.reshape(h, w, channels))
+    if image.alpha_mode == "STRAIGHT" and channels == 4:
+        # Cycles associates straight alpha: Color = colour x alpha (in the byte's own
+        # encoding, rounded to a byte, before linearising; measured, docs/algorithm.md).
+        rgba[..., :3] *= rgba[..., 3:]
+        if not image.is_float:
+            rgba[..., :3] = np.rint(rgba[..., :3] * 255.0) / 255.0
     if not image.is_float and image.colorspace_settings.name == "sRGB":
         rgba[..., :3] = _byte_srgb_to_linear(rgba[..., :3])
-    if image.alpha_mode == "PREMUL" and channels == 4:
-        a = rgba[..., 3:]
-        rgba[..., :3] = np.where(a > 0, rgba[..., :3] / np.where(a > 0, a, 1), rgba[..., :3])
+    elif not image.is_float and image.colorspace_settings.name not in _LINEAR_SPACES:
+        print(f"LPV GI: image '{image.name}': colour space "
+              f"'{image.colorspace_settings.name}' read as linear", file=sys.stderr)
     rgba = resample_to_budget(rgba, TEXTURE_BUDGET)
     with np.errstate(invalid="ignore"):
         bad = ~np.isfinite(rgba) | (rgba < 0)
@@ -539,11 +590,12 @@ def image_pixels(image) -> tuple[str, np.ndarray | None]:
         print(f"LPV GI: image '{image.name}': {int(bad.any(axis=2).sum())} non-finite or "
               "negative pixels set to 0", file=sys.stderr)
         rgba[bad] = 0.0
-    _textures[digest] = rgba
-    while sum(t.shape[0] * t.shape[1] for t in _textures.values()) > _CACHE_PIXELS and \
+    entry = np.ascontiguousarray(rgba[..., :3]), float(rgba[..., 3].mean(dtype=np.float64))
+    _textures[digest] = entry
+    while sum(t[0].shape[0] * t[0].shape[1] for t in _textures.values()) > _CACHE_PIXELS and \
             len(_textures) > 1:
         _textures.popitem(last=False)
-    return digest, rgba
+    return (digest, *entry)
 
 
 def _as_rgba(px: np.ndarray) -> np.ndarray:
@@ -592,5 +644,5 @@ def _byte_srgb_to_linear(c: np.ndarray) -> np.ndarray:
 
 def image_mean_color(image, cache: dict | None = None) -> np.ndarray | None:
     """Mean scene-linear RGB of an image as the Image Texture node reads it; None if missing."""
-    _, rgba = image_pixels(image)
-    return None if rgba is None else rgba[..., :3].reshape(-1, 3).mean(0).astype(np.float32)
+    _, rgb, _ = image_pixels(image)
+    return None if rgb is None else rgb.reshape(-1, 3).mean(0).astype(np.float32)

@@ -1,0 +1,73 @@
+"""Measure how Cycles' Principled BSDF layers scale its diffuse: the Diffuse Color pass of a
+white-based Principled seen head-on (orthographic camera, one patch per setting).
+
+Usage: python -m tools.measure_principled_layers   (headless bpy; prints the tables that
+lpv_addon/scene_io/materials.py holds: the dielectric layer's transmitted fraction
+1 - E(roughness, F0) and the sheen layer's albedo per sheen roughness)
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import tempfile
+
+import numpy as np
+
+ROUGHNESS = (0.0, 0.125, 0.25, 0.375, 0.5, 0.625, 0.75, 0.875, 1.0)
+IOR = (1.0, 1.1, 1.2, 1.33, 1.5, 1.75, 2.0, 2.5, 3.0, 4.0)
+P = 4  # pixels a patch
+
+
+def main(argv: list[str] | None = None) -> dict:
+    os.environ.setdefault("BLENDER_USER_RESOURCES", tempfile.mkdtemp(prefix="lpv_layers_"))
+    import bpy
+
+    from lpv_addon.render import cycles
+    from lpv_core.render import exr
+
+    bpy.ops.wm.read_homefile(use_empty=True)
+    scene = bpy.context.scene
+    cases = [("spec", r, ior) for r in ROUGHNESS for ior in IOR]
+    cases += [("sheen", r, 1.0) for r in ROUGHNESS]
+    for i, (kind, r, ior) in enumerate(cases):
+        mat = bpy.data.materials.new(f"{kind} {r} {ior}")
+        nt = mat.node_tree
+        p = nt.nodes["Principled BSDF"]
+        p.inputs["Base Color"].default_value = (1, 1, 1, 1)
+        if kind == "spec":
+            p.inputs["Roughness"].default_value = r
+            p.inputs["IOR"].default_value = ior
+        else:  # no specular, black base: the sheen layer's own albedo
+            p.inputs["Base Color"].default_value = (0, 0, 0, 1)
+            p.inputs["Specular IOR Level"].default_value = 0.0
+            p.inputs["Sheen Weight"].default_value = 1.0
+            p.inputs["Sheen Roughness"].default_value = r
+            p.inputs["Sheen Tint"].default_value = (1, 1, 1, 1)
+        me = bpy.data.meshes.new("patch")
+        me.from_pydata([(i, 0, 0), (i + 1, 0, 0), (i + 1, -1, 0), (i, -1, 0)], [],
+                       [(0, 3, 2, 1)])
+        me.materials.append(mat)
+        scene.collection.objects.link(bpy.data.objects.new(mat.name, me))
+    cam = bpy.data.cameras.new("cam")
+    cam.type, cam.ortho_scale = "ORTHO", len(cases)
+    ob = bpy.data.objects.new("cam", cam)
+    ob.location = (len(cases) / 2, -0.5, 5)
+    scene.collection.objects.link(ob)
+    scene.camera = ob
+    path = os.path.join(tempfile.mkdtemp(), "layers.exr")
+    cycles.render_cycles_passes(path, samples=16, resolution=(len(cases) * P, P))
+    color = exr.read_multilayer(path)["Diffuse Color"][:, :, 0]
+    values = [float(color[1:3, i * P + 1:i * P + 3].mean()) for i in range(len(cases))]
+    spec = np.array(values[:len(ROUGHNESS) * len(IOR)]).reshape(len(ROUGHNESS), len(IOR))
+    sheen = np.array(values[len(ROUGHNESS) * len(IOR):])
+    out = {"blender": bpy.app.version_string, "roughness": ROUGHNESS, "ior": IOR,
+           "dielectric_transmitted": spec.round(5).tolist(),
+           "sheen_albedo": sheen.round(5).tolist()}
+    print(json.dumps(out))
+    return out
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
