@@ -1,30 +1,26 @@
-"""Compiled twin of render.direct.irradiance (kernels/__init__.py): the direct light of every
-receiver point, with the 2x2 percentage-closer shadow test, in one pass per point."""
+"""Compiled twin of render.direct.irradiance and render.direct.visibility
+(kernels/__init__.py): the direct light of every receiver point, with its shadow test (2x2
+percentage-closer for hard lights, percentage-closer soft shadows for lights with a size), in
+one pass per point, in the same float64 arithmetic as the numpy code."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from ..runtime import jit, pool
+from ..scene import lights as lights_mod
 from ..scene.model import Light
 
 KINDS = {"POINT": 0, "SPOT": 1, "AREA": 2, "SUN": 3}  # the light types the kernel lights
+# render.direct's constants (the stage owns them; a kernel never imports its stage)
+SEARCH_SIDE, FILTER_SIDE, SEARCH_AT = 6, 6, 0.5
+HARD, SPHERE, RECTANGLE, ELLIPSE, CONE = 0, 1, 2, 3, 4
+HASH_A = (12.9898, 78.233, 37.719, 43758.5453)
+HASH_B = (39.3468, 11.135, 83.155, 24634.6345)
 
 
-def irradiance(light: Light, positions: np.ndarray, normals: np.ndarray,
-               shadow=None) -> np.ndarray:
-    """direct.irradiance (M, 3) of a light of a type in KINDS (``shadow`` a direct.ShadowMap or
-    None) by ``_direct_kernel``: the same float64 arithmetic as the numpy code
-    (lights.intensity, then ``visibility`` for the lit points), point by point on two threads
-    (it runs per light and sample over every pixel of the frame)."""
-    positions = np.asarray(positions, np.float64)
-    normals = np.asarray(normals, np.float64)
-    color = np.asarray(light.color, np.float64)
-    kind = KINDS[light.type]
-    cos_half = smooth = 0.0
-    if kind == 1:
-        cos_half = float(np.cos(0.5 * light.spot_size))
-        smooth = (1.0 - cos_half) * light.spot_blend
+def _shadow_args(shadow, src, light: Light) -> tuple:
+    """The map's arrays and the source's numbers as the kernels take them."""
     shadowed = shadow is not None and bool(light.cast_shadow)
     views = shadow.views if shadowed else []
     res = shadow.resolution if shadowed else 1
@@ -33,31 +29,146 @@ def irradiance(light: Light, positions: np.ndarray, normals: np.ndarray,
     scale = np.array([v.half_extent if v.ortho else v.tan_half for v in views], np.float64)
     depths = shadow.stacked() if shadowed else np.zeros((0, 1, 1), np.float32)
     face_view = np.full(6, -1, np.int64)  # cube face -> view (point and area lights)
-    single = kind == 3 or len(views) == 1
+    single = light.type == "SUN" or len(views) == 1
     for i, v in enumerate(views):
         if 0 <= v.face < 6:
             face_view[v.face] = i
+    near = 0.0
+    if shadowed and views[0].ortho:
+        proj = np.asarray(views[0].projection, np.float64)
+        near = float((proj[2, 3] + 1.0) / proj[2, 2])
+    kind = HARD if src is None else int(src.kind)
+    su = np.zeros(3) if src is None else np.asarray(src.u, np.float64)
+    sv = np.zeros(3) if src is None else np.asarray(src.v, np.float64)
+    srad = 0.0 if src is None else float(src.radius)
+    hashes = np.array(HASH_A + HASH_B, np.float64)
+    return (mats, ortho, scale, depths, face_view, single, res, kind, su, sv, srad, near,
+            hashes)
+
+
+def irradiance(light: Light, positions: np.ndarray, normals: np.ndarray,
+               shadow=None, src=None) -> np.ndarray:
+    """direct.irradiance (M, 3) of a light of a type in KINDS (``shadow`` a direct.ShadowMap or
+    None, ``src`` its direct.Source) by ``_direct_kernel``, point by point on two threads (it
+    runs per light and sample over every pixel of the frame)."""
+    positions = np.asarray(positions, np.float64)
+    normals = np.asarray(normals, np.float64)
+    color = np.asarray(light.color, np.float64)
+    kind = KINDS[light.type]
+    cos_half = smooth = 0.0
+    if kind == 1:
+        cos_half = float(np.cos(0.5 * light.spot_size))
+        smooth = (1.0 - cos_half) * light.spot_blend
+    polys = np.zeros((0, 1, 3))
+    radiance = tan_half = norm = 0.0
+    if kind == 2:
+        polys = np.ascontiguousarray(lights_mod.area_patches(light))
+        radiance = float(lights_mod.area_radiance(light))
+        tan_half, norm = lights_mod.spread_constants(light)
     pos, nrm = np.ascontiguousarray(positions), np.ascontiguousarray(normals)
     out = np.empty(pos.shape[0], np.float64)
     args = (kind, np.asarray(light.position, np.float64), np.asarray(light.direction, np.float64),
-            float(light.power), cos_half, smooth, mats, ortho, scale, depths, face_view, single,
-            res, pos, nrm, out)
+            float(light.power), cos_half, smooth, polys, radiance, tan_half, norm,
+            *_shadow_args(shadow, src, light), pos, nrm, out)
     pool.in_halves(lambda sl: _direct_kernel(*args, sl.start, sl.stop), pos.shape[0])
     return out[:, None] * color
 
 
+def visibility(shadow, src, positions: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """direct.visibility (M,) of the receivers by ``_visibility_kernel``."""
+    light = shadow.light
+    pos = np.ascontiguousarray(positions, np.float64)
+    nrm = np.ascontiguousarray(normals, np.float64)
+    out = np.empty(pos.shape[0], np.float64)
+    args = (np.asarray(light.position, np.float64), *_shadow_args(shadow, src, light),
+            pos, nrm, out)
+    pool.in_halves(lambda sl: _visibility_kernel(*args, sl.start, sl.stop), pos.shape[0])
+    return out
+
+
 @jit.kernel
-def _direct_kernel(kind, lp, axis, power, cos_half, smooth, mats, ortho, scale, depths,
-                   face_view, single, res, pos, nrm, out, m0, m1):  # pragma: no cover
+def _edge_term(ax, ay, az, bx, by, bz, nx, ny, nz):  # pragma: no cover
+    """lights._edge_term of one edge."""
+    cx, cy, cz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+    s = np.sqrt(cx * cx + cy * cy + cz * cz)
+    if not s > 1e-300:
+        return 0.0
+    gamma = np.arctan2(s, ax * bx + ay * by + az * bz)
+    return gamma * (cx * nx + cy * ny + cz * nz) / s
+
+
+@jit.kernel
+def _polygon(poly, px, py, pz, nx, ny, nz):  # pragma: no cover
+    """lights.polygon_irradiance of one receiver: the clipped contour integral."""
+    nv = poly.shape[0]
+    total = 0.0
+    lx = ly = lz = ex = ey = ez = 0.0
+    leave = enter = False
+    for i in range(nv):
+        j = (i + 1) % nv
+        ax, ay, az = poly[i, 0] - px, poly[i, 1] - py, poly[i, 2] - pz
+        bx, by, bz = poly[j, 0] - px, poly[j, 1] - py, poly[j, 2] - pz
+        ha = ax * nx + ay * ny + az * nz
+        hb = bx * nx + by * ny + bz * nz
+        up_a, up_b = ha >= 0.0, hb >= 0.0
+        if not (up_a or up_b):
+            continue
+        xx, xy, xz = ax, ay, az
+        if up_a != up_b:
+            t = ha / (ha - hb)
+            xx, xy, xz = ax + t * (bx - ax), ay + t * (by - ay), az + t * (bz - az)
+        if up_a and not up_b:
+            total += _edge_term(ax, ay, az, xx, xy, xz, nx, ny, nz)
+            lx, ly, lz, leave = xx, xy, xz, True
+        elif up_b and not up_a:
+            total += _edge_term(xx, xy, xz, bx, by, bz, nx, ny, nz)
+            ex, ey, ez, enter = xx, xy, xz, True
+        else:
+            total += _edge_term(ax, ay, az, bx, by, bz, nx, ny, nz)
+    if leave and enter:
+        total += _edge_term(lx, ly, lz, ex, ey, ez, nx, ny, nz)
+    return 0.5 * abs(total)
+
+
+@jit.kernel
+def _area(polys, radiance, tan_half, norm, lp, axis, px, py, pz, nx, ny, nz):  # pragma: no cover
+    """lights.area_irradiance of one receiver."""
+    if (px - lp[0]) * axis[0] + (py - lp[1]) * axis[1] + (pz - lp[2]) * axis[2] <= 0.0:
+        return 0.0
+    e = 0.0
+    for s in range(polys.shape[0]):
+        part = _polygon(polys[s], px, py, pz, nx, ny, nz)
+        if norm > 0.0:
+            nv = polys.shape[1]
+            gx = gy = gz = 0.0
+            for i in range(nv):
+                gx += polys[s, i, 0]
+                gy += polys[s, i, 1]
+                gz += polys[s, i, 2]
+            tx, ty, tz = px - gx / nv, py - gy / nv, pz - gz / nv
+            cos_t = (tx * axis[0] + ty * axis[1] + tz * axis[2]) / max(
+                np.sqrt(tx * tx + ty * ty + tz * tz), 1e-300)
+            tan_t = np.sqrt(max(1.0 - cos_t * cos_t, 0.0)) / max(cos_t, 1e-300)
+            part = part * max((tan_half - tan_t) * norm, 0.0)
+        e = e + part
+    return radiance * e
+
+
+@jit.kernel
+def _direct_kernel(kind, lp, axis, power, cos_half, smooth, polys, radiance, tan_half, norm,
+                   mats, ortho, scale, depths, face_view, single, res, skind, su, sv, srad,
+                   near, hashes, pos, nrm, out, m0, m1):  # pragma: no cover
     """``irradiance`` (per unit colour) of points m0..m1-1: lights.intensity and the cosine
-    over d^2 (the sun: E cos), then for lit points with views the 2x2 percentage-closer
-    ``visibility`` of the view the point falls in (cube face by its largest axis)."""
-    four_pi, pi = 4.0 * np.pi, np.pi
+    over d^2 (the sun: E cos; area lights: the contour integral), then for lit points with
+    views their ``visibility``."""
+    four_pi = 4.0 * np.pi
     for m in range(m0, m1):
         px, py, pz = pos[m, 0], pos[m, 1], pos[m, 2]
         nx, ny, nz = nrm[m, 0], nrm[m, 1], nrm[m, 2]
         if kind == 3:
             e = power * max(nx * -axis[0] + ny * -axis[1] + nz * -axis[2], 0.0)
+        elif kind == 2:
+            e = _area(polys, radiance, tan_half, norm, lp, axis, px, py, pz, nx, ny, nz)
         else:
             tx_, ty_, tz_ = lp[0] - px, lp[1] - py, lp[2] - pz
             d2 = max(tx_ * tx_ + ty_ * ty_ + tz_ * tz_, 1e-30)
@@ -68,55 +179,86 @@ def _direct_kernel(kind, lp, axis, power, cos_half, smooth, mats, ortho, scale, 
                 inten = power / four_pi
             else:
                 cos_a = -wx * axis[0] + -wy * axis[1] + -wz * axis[2]
-                if kind == 2:
-                    inten = power / pi * max(cos_a, 0.0)
-                elif smooth > 0:
+                if smooth > 0:
                     x = min(max((cos_a - cos_half) / smooth, 0.0), 1.0)
                     inten = power / four_pi * (x * x * (3.0 - 2.0 * x))
                 else:
                     inten = power / four_pi * (1.0 if cos_a > cos_half else 0.0)
             e = inten * cos_r / d2
         if e > 0 and mats.shape[0] > 0:
-            view = 0
-            if not single:
-                rx, ry, rz = px - lp[0], py - lp[1], pz - lp[2]
-                ax, big = 0, abs(rx)
-                if abs(ry) > big:
-                    ax, big = 1, abs(ry)
-                if abs(rz) > big:
-                    ax = 2
-                comp = rx if ax == 0 else (ry if ax == 1 else rz)
-                view = face_view[ax * 2 + (1 if comp < 0 else 0)]
-            if view >= 0:
-                e *= _pcf(mats[view], ortho[view], scale[view], depths[view], res, lp,
-                          px, py, pz, nx, ny, nz)
+            e *= _visibility(lp, mats, ortho, scale, depths, face_view, single, res, skind, su,
+                             sv, srad, near, hashes, px, py, pz, nx, ny, nz)
         out[m] = e
 
 
 @jit.kernel
-def _pcf(mat, ortho, scale, depth, res, lp, px, py, pz, nx, ny, nz):  # pragma: no cover
-    """``visibility`` of one point in one view: 2x2 bilinear percentage-closer filtering of the
-    offset point's distance (sun: depth) against the map, 1 outside the view."""
-    if ortho:
-        texel = 2.0 * scale / res
-        qx, qy, qz = px + nx * texel * 1.5, py + ny * texel * 1.5, pz + nz * texel * 1.5
-        vx = qx * mat[0, 0] + qy * mat[0, 1] + qz * mat[0, 2] + mat[0, 3]
-        vy = qx * mat[1, 0] + qy * mat[1, 1] + qz * mat[1, 2] + mat[1, 3]
-        vz = qx * mat[2, 0] + qy * mat[2, 1] + qz * mat[2, 2] + mat[2, 3]
-        u, v, d = vx / scale, vy / scale, -vz
-        bias = texel * 1.5
+def _visibility_kernel(lp, mats, ortho, scale, depths, face_view, single, res, skind, su, sv,
+                       srad, near, hashes, pos, nrm, out, m0, m1):  # pragma: no cover
+    """``visibility`` of points m0..m1-1."""
+    for m in range(m0, m1):
+        out[m] = _visibility(lp, mats, ortho, scale, depths, face_view, single, res, skind,
+                             su, sv, srad, near, hashes, pos[m, 0], pos[m, 1], pos[m, 2],
+                             nrm[m, 0], nrm[m, 1], nrm[m, 2])
+
+
+@jit.kernel
+def _view_of(lp, face_view, single, x, y, z):  # pragma: no cover
+    """The view a point falls in: 0 for a single view, else its cube face's (-1: none)."""
+    if single:
+        return 0
+    rx, ry, rz = x - lp[0], y - lp[1], z - lp[2]
+    ax, big = 0, abs(rx)
+    if abs(ry) > big:
+        ax, big = 1, abs(ry)
+    if abs(rz) > big:
+        ax = 2
+    comp = rx if ax == 0 else (ry if ax == 1 else rz)
+    return face_view[ax * 2 + (1 if comp < 0 else 0)]
+
+
+@jit.kernel
+def _visibility(lp, mats, ortho, scale, depths, face_view, single, res, skind, su, sv, srad,
+                near, hashes, px, py, pz, nx, ny, nz):  # pragma: no cover
+    """direct.visibility of one receiver: its view, normal offset, distance and bias
+    (direct._receivers), the bilinear test (direct._hard), then for a source with a size the
+    soft shadow (direct._soft)."""
+    view = _view_of(lp, face_view, single, px, py, pz)
+    if view < 0:
+        return 1.0
+    mat = mats[view]
+    if ortho[view]:
+        world = 2.0 * scale[view] / res
+        qx, qy, qz = px + nx * world * 1.5, py + ny * world * 1.5, pz + nz * world * 1.5
+        dist = -(qx * mat[2, 0] + qy * mat[2, 1] + qz * mat[2, 2] + mat[2, 3])
+        bias = world * 1.5
+        texel = world
     else:
         rx, ry, rz = px - lp[0], py - lp[1], pz - lp[2]
-        texel = np.sqrt(rx * rx + ry * ry + rz * rz) * (2.0 * scale / res) * 1.8
-        qx, qy, qz = px + nx * texel, py + ny * texel, pz + nz * texel
-        vx = qx * mat[0, 0] + qy * mat[0, 1] + qz * mat[0, 2] + mat[0, 3]
-        vy = qx * mat[1, 0] + qy * mat[1, 1] + qz * mat[1, 2] + mat[1, 3]
-        vz = qx * mat[2, 0] + qy * mat[2, 1] + qz * mat[2, 2] + mat[2, 3]
+        world = np.sqrt(rx * rx + ry * ry + rz * rz) * (2.0 * scale[view] / res) * 1.8
+        qx, qy, qz = px + nx * world, py + ny * world, pz + nz * world
+        ox, oy, oz = qx - lp[0], qy - lp[1], qz - lp[2]
+        dist = np.sqrt(ox * ox + oy * oy + oz * oz)
+        bias = world * 1.5
+        texel = 2.0 * scale[view] / res
+    hard = _pcf(mat, ortho[view], scale[view], depths[view], res, qx, qy, qz, dist, bias)
+    if skind == HARD:
+        return hard
+    return _soft(lp, mats, ortho, scale, depths, face_view, single, res, skind, su, sv, srad,
+                 near, hashes, px, py, pz, nx, ny, nz, qx, qy, qz, dist, bias, texel, hard)
+
+
+@jit.kernel
+def _pcf(mat, ortho, scale, depth, res, qx, qy, qz, d, bias):  # pragma: no cover
+    """direct._hard of one offset receiver: 2x2 bilinear percentage-closer filtering of its
+    distance (sun: depth) against the map, 1 outside the view."""
+    vx = qx * mat[0, 0] + qy * mat[0, 1] + qz * mat[0, 2] + mat[0, 3]
+    vy = qx * mat[1, 0] + qy * mat[1, 1] + qz * mat[1, 2] + mat[1, 3]
+    vz = qx * mat[2, 0] + qy * mat[2, 1] + qz * mat[2, 2] + mat[2, 3]
+    if ortho:
+        u, v = vx / scale, vy / scale
+    else:
         z = max(-vz, 1e-30)
         u, v = vx / z / scale, vy / z / scale
-        ox, oy, oz = qx - lp[0], qy - lp[1], qz - lp[2]
-        d = np.sqrt(ox * ox + oy * oy + oz * oz)
-        bias = texel * 1.5
     if not (abs(u) <= 1.0 and abs(v) <= 1.0):
         return 1.0
     fx = (u + 1.0) * 0.5 * res - 0.5
@@ -134,3 +276,161 @@ def _pcf(mat, ortho, scale, depth, res, lp, px, py, pz, nx, ny, nz):  # pragma: 
             if d <= depth[ys, xs] + bias:
                 acc += wx * wy
     return acc
+
+
+@jit.kernel
+def _frac_hash(px, py, pz, hashes, o):  # pragma: no cover
+    x = np.sin(px * hashes[o] + py * hashes[o + 1] + pz * hashes[o + 2]) * hashes[o + 3]
+    return x - np.floor(x)
+
+
+@jit.kernel
+def _stratum(idx, side, sa, sb, round_):  # pragma: no cover
+    """direct._strata's point ``idx``: shifted stratum on [-1, 1]^2, or concentric-mapped."""
+    a = ((idx // side) + 0.5) / side + sa
+    b = ((idx % side) + 0.5) / side + sb
+    a = 2.0 * (a - np.floor(a)) - 1.0
+    b = 2.0 * (b - np.floor(b)) - 1.0
+    if not round_:
+        return a, b
+    if a == 0 and b == 0:
+        return 0.0, 0.0
+    if abs(a) > abs(b):
+        r, phi = a, 0.25 * np.pi * b / a
+    else:
+        r, phi = b, 0.5 * np.pi - 0.25 * np.pi * a / b
+    return r * np.cos(phi), r * np.sin(phi)
+
+
+@jit.kernel
+def _lookup(lp, mats, ortho, scale, depths, face_view, single, res, x, y, z,
+            qx, qy, qz, nx, ny, nz, dist, bias):  # pragma: no cover
+    """direct._lookup of one tap point: (depth, occludes)."""
+    view = _view_of(lp, face_view, single, x, y, z)
+    if view < 0:
+        return np.inf, False
+    mat = mats[view]
+    s = scale[view]
+    vx = x * mat[0, 0] + y * mat[0, 1] + z * mat[0, 2] + mat[0, 3]
+    vy = x * mat[1, 0] + y * mat[1, 1] + z * mat[1, 2] + mat[1, 3]
+    vz = x * mat[2, 0] + y * mat[2, 1] + z * mat[2, 2] + mat[2, 3]
+    ok = True
+    if ortho[view]:
+        u, v = vx / s, vy / s
+    else:
+        zz = -vz
+        ok = zz > 0
+        if not ok:
+            zz = 1.0
+        u, v = vx / zz / s, vy / zz / s
+    if single:
+        ok = ok and abs(u) <= 1.0 and abs(v) <= 1.0
+    if not ok:
+        return np.inf, False
+    ix = int(min(max(np.floor((u + 1.0) * 0.5 * res), 0.0), res - 1.0))
+    iy = int(min(max(np.floor((1.0 - v) * 0.5 * res), 0.0), res - 1.0))
+    uc = (ix + 0.5) / res * 2.0 - 1.0
+    vc = 1.0 - (iy + 0.5) / res * 2.0
+    if ortho[view]:
+        ax, ay, az = uc * s - mat[0, 3], vc * s - mat[1, 3], -mat[2, 3]
+        y0x = ax * mat[0, 0] + ay * mat[1, 0] + az * mat[2, 0]
+        y0y = ax * mat[0, 1] + ay * mat[1, 1] + az * mat[2, 1]
+        y0z = ax * mat[0, 2] + ay * mat[1, 2] + az * mat[2, 2]
+        fx, fy, fz = -mat[2, 0], -mat[2, 1], -mat[2, 2]
+    else:
+        y0x, y0y, y0z = lp[0], lp[1], lp[2]
+        ax, ay, az = uc * s, vc * s, -1.0
+        fx = ax * mat[0, 0] + ay * mat[1, 0] + az * mat[2, 0]
+        fy = ax * mat[0, 1] + ay * mat[1, 1] + az * mat[2, 1]
+        fz = ax * mat[0, 2] + ay * mat[1, 2] + az * mat[2, 2]
+        ln = np.sqrt(fx * fx + fy * fy + fz * fz)
+        fx, fy, fz = fx / ln, fy / ln, fz / ln
+    num = nx * (qx - y0x) + ny * (qy - y0y) + nz * (qz - y0z)
+    den = nx * fx + ny * fy + nz * fz
+    t = num / den if num * den > 0 else np.inf
+    d = np.float64(depths[view, iy, ix])
+    return d, d < min(dist, t) - bias
+
+
+@jit.kernel
+def _soft(lp, mats, ortho, scale, depths, face_view, single, res, skind, su, sv, srad, near,
+          hashes, px, py, pz, nx, ny, nz, qx, qy, qz, dist, bias, texel, hard):  # pragma: no cover
+    """direct._soft of one receiver (qx, qy, qz its normal-offset point)."""
+    sun = skind == CONE
+    round_ = skind != RECTANGLE
+    # the source's half-axes as it casts onto this receiver (direct._light_frame)
+    if skind == RECTANGLE or skind == ELLIPSE:
+        ux, uy, uz, vx, vy, vz = su[0], su[1], su[2], sv[0], sv[1], sv[2]
+        extent = max(np.sqrt(ux * ux + uy * uy + uz * uz), np.sqrt(vx * vx + vy * vy + vz * vz))
+    elif sun:
+        rot = mats[0]
+        ux, uy, uz = rot[0, 0] * srad, rot[0, 1] * srad, rot[0, 2] * srad
+        vx, vy, vz = rot[1, 0] * srad, rot[1, 1] * srad, rot[1, 2] * srad
+        extent = srad
+    else:
+        d = max(dist, 1e-300)
+        wx, wy, wz = (qx - lp[0]) / d, (qy - lp[1]) / d, (qz - lp[2]) / d
+        if abs(wz) < 0.9:
+            ax, ay, az = 0.0, 0.0, 1.0
+        else:
+            ax, ay, az = 1.0, 0.0, 0.0
+        e1x, e1y, e1z = wy * az - wz * ay, wz * ax - wx * az, wx * ay - wy * ax
+        ln = np.sqrt(e1x * e1x + e1y * e1y + e1z * e1z)
+        e1x, e1y, e1z = e1x / ln, e1y / ln, e1z / ln
+        e2x, e2y, e2z = wy * e1z - wz * e1y, wz * e1x - wx * e1z, wx * e1y - wy * e1x
+        ux, uy, uz = e1x * srad, e1y * srad, e1z * srad
+        vx, vy, vz = e2x * srad, e2y * srad, e2z * srad
+        extent = srad
+    if sun:
+        s = max(dist - near, 0.0)
+        search_px = s * srad / texel
+    else:
+        s = SEARCH_AT
+        search_px = extent * (1.0 - SEARCH_AT) / (SEARCH_AT * dist) / texel
+    if not search_px >= 1.0:
+        return hard
+    sa = _frac_hash(px, py, pz, hashes, 0)
+    sb = _frac_hash(px, py, pz, hashes, 4)
+    count = 0
+    total = 0.0
+    for k in range(SEARCH_SIDE * SEARCH_SIDE + 1):
+        if k < SEARCH_SIDE * SEARCH_SIDE:
+            a, b = _stratum(k, SEARCH_SIDE, sa, sb, round_)
+            ox, oy, oz = a * ux + b * vx, a * uy + b * vy, a * uz + b * vz
+            if sun:
+                x, y, z = qx + s * ox, qy + s * oy, qz + s * oz
+            else:
+                cx, cy, cz = lp[0] + ox, lp[1] + oy, lp[2] + oz
+                x, y, z = cx + s * (qx - cx), cy + s * (qy - cy), cz + s * (qz - cz)
+        else:
+            x, y, z = qx, qy, qz  # the receiver's own texel
+        dep, blocked = _lookup(lp, mats, ortho, scale, depths, face_view, single, res, x, y, z,
+                               qx, qy, qz, nx, ny, nz, dist, bias)
+        if blocked:
+            count += 1
+            total += dep
+    if count == 0:
+        return 1.0
+    t_b = total / count
+    if sun:
+        s = max(dist - t_b, 0.0)
+        width_px = s * srad / texel
+    else:
+        s = min(max(t_b / dist, 1e-6), 1.0)
+        width_px = extent * (1.0 - s) / (s * dist) / texel
+    if not width_px >= 1.0:
+        return hard
+    hits = 0
+    for k in range(FILTER_SIDE * FILTER_SIDE):
+        a, b = _stratum(k, FILTER_SIDE, sa, sb, round_)
+        ox, oy, oz = a * ux + b * vx, a * uy + b * vy, a * uz + b * vz
+        if sun:
+            x, y, z = qx + s * ox, qy + s * oy, qz + s * oz
+        else:
+            cx, cy, cz = lp[0] + ox, lp[1] + oy, lp[2] + oz
+            x, y, z = cx + s * (qx - cx), cy + s * (qy - cy), cz + s * (qz - cz)
+        _, blocked = _lookup(lp, mats, ortho, scale, depths, face_view, single, res, x, y, z,
+                             qx, qy, qz, nx, ny, nz, dist, bias)
+        if blocked:
+            hits += 1
+    return 1.0 - hits / (FILTER_SIDE * FILTER_SIDE)

@@ -1,8 +1,15 @@
 """Direct diffuse lighting with shadow maps, in Cycles' units.
 
-Irradiance at a receiver (W/m^2): I(w) cos(theta) / d^2 for point, spot and area lights,
-E cos(theta) for the sun. Cycles' "Diffuse Direct" pass is irradiance / pi (times the light
-colour); multiplied by "Diffuse Color" it gives the reflected radiance.
+Irradiance at a receiver (W/m^2): I(w) cos(theta) / d^2 for point and spot lights, E cos(theta)
+for the sun, and for area lights their radiance P / (pi A) times the exact contour integral
+over the emitter (lights.area_irradiance). Cycles' "Diffuse Direct" pass is irradiance / pi
+(times the light colour); multiplied by "Diffuse Color" it gives the reflected radiance.
+
+Shadows: a hard light (no radius, no sun angle) is 2x2 percentage-closer filtered; a light
+with a size casts percentage-closer soft shadows [Fernando 2005] on the same map: a blocker
+search over the light's footprint, the penumbra from similar triangles, then stratified taps
+over it, every tap compared against the receiver's own plane through that texel's centre
+(docs/algorithm.md, "Soft shadows").
 """
 
 from __future__ import annotations
@@ -16,6 +23,12 @@ from ..runtime import jit
 from ..scene import lights as lights_mod
 from ..scene.model import Light
 from .raster import Rasterizer
+
+SEARCH_SIDE = 6  # blocker search: 6 x 6 strata over the light, plus the receiver's own texel
+FILTER_SIDE = 6  # percentage-closer taps: 6 x 6 strata over the light
+SEARCH_AT = 0.5  # the search looks for blockers over the half of the way nearer the receiver
+# Source kinds (Source.kind), shared with kernels/direct.py
+HARD, SPHERE, RECTANGLE, ELLIPSE, CONE = 0, 1, 2, 3, 4
 
 
 @dataclass
@@ -41,13 +54,39 @@ class ShadowMap:
         return int(self.stacked().nbytes)
 
 
+@dataclass
+class Source:
+    """What casts the penumbra, seen from the shadow map's eye: ``kind`` HARD (a point),
+    SPHERE (a ball of ``radius``: a disk facing each receiver), RECTANGLE or ELLIPSE (half
+    extents ``u``, ``v`` in world space) or CONE (the sun: ``radius`` = tan of its angular
+    radius)."""
+
+    kind: int
+    radius: float = 0.0
+    u: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    v: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+
+def source_of(light: Light, radius: float | None = None) -> Source:
+    """The light's own Source, or with ``radius`` a sphere of that radius at the light's
+    position (for a sun: an angular radius in radians), for callers whose shadow map stands
+    for another emitter (a patch, a piece of sky)."""
+    if light.type == "SUN":
+        half = 0.5 * float(light.angle) if radius is None else float(radius)
+        half = min(max(half, 0.0), 0.25 * np.pi)
+        return Source(CONE, float(np.tan(half))) if half > 0 else Source(HARD)
+    if radius is None and light.type == "AREA":
+        _, u, v, _ = lights_mod.area_frame(light)
+        return Source(ELLIPSE if lights_mod.is_round(light) else RECTANGLE, 0.0, u, v)
+    r = float(light.radius if radius is None else radius)
+    return Source(SPHERE, r) if r > 0 and np.isfinite(r) else Source(HARD)
+
+
 def render_shadow_map(raster: Rasterizer, light: Light, bounds, resolution: int) -> ShadowMap:
     """Rasterise the light's views and keep the nearest occluder per texel: its distance from
     the light (depth along the view for the sun), in float32 from the positions relative to
     the rasteriser's origin as they are read back (no float64 copy of the frame: a 1024^2 map
     took 100 ms that way, most of it converting and subtracting 3M floats twice)."""
-    from ..scene import lights as lights_mod
-
     views = lights_mod.light_views(light, bounds)
     stack = np.empty((len(views), resolution, resolution), np.float32)
     origin = np.asarray(raster.origin, np.float64)
@@ -70,12 +109,97 @@ def _transform(m: np.ndarray, p: np.ndarray) -> np.ndarray:
     return p @ m[:3, :3].T + m[:3, 3]
 
 
-def visibility(shadow: ShadowMap, positions: np.ndarray, normals: np.ndarray) -> np.ndarray:
-    """Fraction of the light seen by each receiver (M,), 2x2 percentage-closer filtered."""
+def _ortho_near(view) -> float:
+    """The near plane's depth of an orthographic view, from its OpenGL projection."""
+    proj = np.asarray(view.projection, np.float64)
+    return float((proj[2, 3] + 1.0) / proj[2, 2])
+
+
+def _hash(p: np.ndarray, k: tuple[float, float, float], scale: float) -> np.ndarray:
+    """A per-receiver number in [0, 1) from its position (the taps' rotation: no banding)."""
+    x = np.sin(p[:, 0] * k[0] + p[:, 1] * k[1] + p[:, 2] * k[2]) * scale
+    return x - np.floor(x)
+
+
+HASH_A = ((12.9898, 78.233, 37.719), 43758.5453)
+HASH_B = ((39.3468, 11.135, 83.155), 24634.6345)
+
+
+def _strata(side: int, sa: np.ndarray, sb: np.ndarray, round_: bool):
+    """(M, side^2) points of a side x side stratified pattern, toroidally shifted per
+    receiver by (sa, sb) [Cranley & Patterson 1976], on [-1, 1]^2 or the unit disk."""
+    cell = (np.arange(side * side) // side, np.arange(side * side) % side)
+    a = (cell[0] + 0.5) / side + sa[:, None]
+    b = (cell[1] + 0.5) / side + sb[:, None]
+    a = 2.0 * (a - np.floor(a)) - 1.0
+    b = 2.0 * (b - np.floor(b)) - 1.0
+    return lights_mod.concentric(a, b) if round_ else (a, b)
+
+
+def _lookup(shadow: ShadowMap, x: np.ndarray, p_off: np.ndarray, n: np.ndarray,
+            dist: np.ndarray, bias: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For tap points x (N, 3): the map's depth at the texel each falls in (inf outside the
+    views) and whether it occludes the receiver: nearer, by ``bias``, than both the
+    receiver's distance ``dist`` and its own plane (through p_off, normal n) along that
+    texel's centre ray, so a wide filter finds no acne on the receiver's own surface."""
+    res = shadow.resolution
+    light = shadow.light
+    depth_out = np.full(x.shape[0], np.inf)
+    blocked = np.zeros(x.shape[0], bool)
+    single = light.type == "SUN" or len(shadow.views) == 1
+    if single:
+        view_of = np.zeros(x.shape[0], int)
+    else:
+        rel = x - light.position
+        axis = np.argmax(np.abs(rel), axis=1)
+        sign = np.take_along_axis(rel, axis[:, None], 1)[:, 0] < 0
+        face_index = {v.face: i for i, v in enumerate(shadow.views)}
+        view_of = np.array([face_index.get(f, -1) for f in range(6)])[axis * 2 + sign]
+    for i, (view, depth) in enumerate(zip(shadow.views, shadow.depths)):
+        sel = np.nonzero(view_of == i)[0]
+        if sel.size == 0:
+            continue
+        m = np.asarray(view.view, np.float64)
+        vp = _transform(m, x[sel])
+        if view.ortho:
+            scale = view.half_extent
+            u, v = vp[:, 0] / scale, vp[:, 1] / scale
+            ok = np.ones(sel.size, bool)
+        else:
+            scale = view.tan_half
+            z = -vp[:, 2]
+            ok = z > 0
+            zs = np.where(ok, z, 1.0)
+            u, v = vp[:, 0] / zs / scale, vp[:, 1] / zs / scale
+        if single:
+            ok &= (np.abs(u) <= 1.0) & (np.abs(v) <= 1.0)
+        ix = np.clip(np.floor((u + 1.0) * 0.5 * res), 0, res - 1).astype(int)
+        iy = np.clip(np.floor((1.0 - v) * 0.5 * res), 0, res - 1).astype(int)
+        uc = (ix + 0.5) / res * 2.0 - 1.0
+        vc = 1.0 - (iy + 0.5) / res * 2.0
+        rot = m[:3, :3]
+        if view.ortho:
+            y0 = (np.c_[uc * scale, vc * scale, np.zeros(sel.size)] - m[:3, 3]) @ rot
+            f = np.broadcast_to(-rot[2], y0.shape)
+        else:
+            y0 = np.broadcast_to(light.position, (sel.size, 3))
+            f = np.c_[uc * scale, vc * scale, -np.ones(sel.size)] @ rot
+            f = f / np.sqrt(np.einsum("ij,ij->i", f, f))[:, None]
+        nn = n[sel]
+        num = np.einsum("ij,ij->i", nn, p_off[sel] - y0)
+        den = np.einsum("ij,ij->i", nn, f)
+        t = np.where(num * den > 0, num / np.where(den != 0, den, 1.0), np.inf)
+        d = depth[iy, ix].astype(np.float64)
+        depth_out[sel] = np.where(ok, d, np.inf)
+        blocked[sel] = ok & (d < np.minimum(dist[sel], t) - bias[sel])
+    return depth_out, blocked
+
+
+def _receivers(shadow: ShadowMap, positions: np.ndarray, normals: np.ndarray):
+    """Per receiver: the view it falls in (-1 for none), the normal-offset point, its
+    distance (sun: depth), the depth bias and the texel's size (perspective: the angle of a
+    texel at the view's centre; sun: its width in metres)."""
     m = positions.shape[0]
-    vis = np.ones(m)
-    if not shadow.light.cast_shadow or m == 0:
-        return vis
     res = shadow.resolution
     light = shadow.light
     if light.type == "SUN" or len(shadow.views) == 1:
@@ -84,34 +208,50 @@ def visibility(shadow: ShadowMap, positions: np.ndarray, normals: np.ndarray) ->
         rel = positions - light.position
         axis = np.argmax(np.abs(rel), axis=1)
         sign = np.take_along_axis(rel, axis[:, None], 1)[:, 0] < 0
-        cube_face = axis * 2 + sign
         face_index = {v.face: i for i, v in enumerate(shadow.views)}
-        face_of = np.array([face_index.get(f, -1) for f in range(6)])[cube_face]
+        face_of = np.array([face_index.get(f, -1) for f in range(6)])[axis * 2 + sign]
+    p_off = np.array(positions, np.float64)
+    dist = np.zeros(m)
+    bias = np.zeros(m)
+    texel = np.zeros(m)
+    for i, view in enumerate(shadow.views):
+        sel = np.nonzero(face_of == i)[0]
+        if sel.size == 0:
+            continue
+        p, n = positions[sel], normals[sel]
+        if view.ortho:
+            world = 2.0 * view.half_extent / res
+            p_off[sel] = p + n * world * 1.5
+            dist[sel] = -_transform(view.view, p_off[sel])[:, 2]
+            bias[sel] = world * 1.5
+            texel[sel] = world
+        else:
+            d = np.linalg.norm(p - light.position, axis=1)
+            world = d * (2.0 * view.tan_half / res) * 1.8  # worst case at the face corner
+            p_off[sel] = p + n * world[:, None]
+            dist[sel] = np.linalg.norm(p_off[sel] - light.position, axis=1)
+            bias[sel] = world * 1.5
+            texel[sel] = 2.0 * view.tan_half / res
+    return face_of, p_off, dist, bias, texel
+
+
+def _hard(shadow: ShadowMap, face_of, p_off, dist, bias) -> np.ndarray:
+    """2x2 bilinear percentage-closer filtering of each offset receiver in its view."""
+    res = shadow.resolution
+    vis = np.ones(p_off.shape[0])
     for i, (view, depth) in enumerate(zip(shadow.views, shadow.depths)):
         sel = np.nonzero(face_of == i)[0]
         if sel.size == 0:
             continue
-        p = positions[sel]
-        n = normals[sel]
+        vp = _transform(view.view, p_off[sel])
         if view.ortho:
-            texel = 2.0 * view.half_extent / res
-            p_off = p + n * texel * 1.5
-            vp = _transform(view.view, p_off)
             u = vp[:, 0] / view.half_extent
             v = vp[:, 1] / view.half_extent
-            d = -vp[:, 2]
-            bias = texel * 1.5
         else:
-            dist = np.linalg.norm(p - light.position, axis=1)
-            texel = dist * (2.0 * view.tan_half / res) * 1.8  # worst case at the face corner
-            p_off = p + n * texel[:, None]
-            vp = _transform(view.view, p_off)
             z = np.maximum(-vp[:, 2], 1e-30)
             u = vp[:, 0] / z / view.tan_half
             v = vp[:, 1] / z / view.tan_half
-            d = np.linalg.norm(p_off - light.position, axis=1)
-            bias = texel * 1.5
-        # Bilinear percentage-closer filtering over the 2x2 nearest texels.
+        d = dist[sel]
         fx = (u + 1.0) * 0.5 * res - 0.5
         fy = (1.0 - v) * 0.5 * res - 0.5
         x0 = np.floor(fx).astype(int)
@@ -123,11 +263,121 @@ def visibility(shadow: ShadowMap, positions: np.ndarray, normals: np.ndarray) ->
             for dx, wx in ((0, 1.0 - tx), (1, tx)):
                 xs = np.clip(x0 + dx, 0, res - 1)
                 ys = np.clip(y0 + dy, 0, res - 1)
-                lit = d <= depth[ys, xs] + bias
+                lit = d <= depth[ys, xs] + bias[sel]
                 acc += wx * wy * lit
         inside = (np.abs(u) <= 1.0) & (np.abs(v) <= 1.0)
         vis[sel] = np.where(inside, acc, 1.0)
     return vis
+
+
+def _light_frame(shadow: ShadowMap, src: Source, p_off: np.ndarray, dist: np.ndarray):
+    """Per receiver (M, 3) x 2 the half-axes of the source as it casts onto the receiver
+    (a sphere: a disk facing it; the sun: metres of offset per metre of depth along its
+    map's right and up axes) and its largest half extent (M,)."""
+    m = p_off.shape[0]
+    if src.kind in (RECTANGLE, ELLIPSE):
+        u = np.broadcast_to(src.u, (m, 3))
+        v = np.broadcast_to(src.v, (m, 3))
+        return u, v, np.full(m, max(np.linalg.norm(src.u), np.linalg.norm(src.v)))
+    if src.kind == CONE:
+        rot = np.asarray(shadow.views[0].view, np.float64)[:3, :3]
+        u = np.broadcast_to(rot[0] * src.radius, (m, 3))
+        v = np.broadcast_to(rot[1] * src.radius, (m, 3))
+        return u, v, np.full(m, src.radius)
+    w = (p_off - shadow.light.position) / np.maximum(dist, 1e-300)[:, None]
+    a = np.where(np.abs(w[:, 2:3]) < 0.9, np.array([[0.0, 0.0, 1.0]]),
+                 np.array([[1.0, 0.0, 0.0]]))
+    e1 = np.cross(w, a)
+    e1 = e1 / np.sqrt(np.einsum("ij,ij->i", e1, e1))[:, None]
+    e2 = np.cross(w, e1)
+    return e1 * src.radius, e2 * src.radius, np.full(m, src.radius)
+
+
+def _taps(src: Source, ortho: bool, c, p_off, u, v, s, side, sa, sb):
+    """Tap points (M, side^2, 3): on the segment from each stratum's point of the light to
+    the receiver, at the fraction ``s`` (M,) of the way (the sun: offsets in its map's plane
+    of ``s`` metres of depth times the cone's tangent)."""
+    a, b = _strata(side, sa, sb, src.kind != RECTANGLE)
+    off = a[..., None] * u[:, None] + b[..., None] * v[:, None]
+    if ortho:
+        return p_off[:, None] + s[:, None, None] * off
+    q = c + off
+    return q + s[:, None, None] * (p_off[:, None] - q)
+
+
+def _soft(shadow: ShadowMap, src: Source, positions, normals, face_of, p_off, dist, bias,
+          texel, hard) -> np.ndarray:
+    """Percentage-closer soft shadows of the receivers (see the module docstring)."""
+    light = shadow.light
+    ortho = light.type == "SUN"
+    c = light.position
+    m = positions.shape[0]
+    u, v, extent = _light_frame(shadow, src, p_off, dist)
+    if ortho:
+        near = _ortho_near(shadow.views[0])
+        search_s = np.maximum(dist - near, 0.0)
+        search_px = search_s * src.radius / texel
+    else:
+        search_s = np.full(m, SEARCH_AT)
+        search_px = extent * (1.0 - SEARCH_AT) / (SEARCH_AT * dist) / texel
+    sa = _hash(positions, *HASH_A)
+    sb = _hash(positions, *HASH_B)
+    vis = hard.copy()
+    todo = np.nonzero((search_px >= 1.0) & (face_of >= 0))[0]
+    if todo.size == 0:
+        return vis
+    k = SEARCH_SIDE * SEARCH_SIDE
+    x = _taps(src, ortho, c, p_off[todo], u[todo], v[todo], search_s[todo], SEARCH_SIDE,
+              sa[todo], sb[todo])
+    x = np.concatenate([x, p_off[todo][:, None]], axis=1)  # and the receiver's own texel
+    rep = lambda arr: np.repeat(arr[todo], k + 1, axis=0)
+    depth, blocked = _lookup(shadow, x.reshape(-1, 3), rep(p_off), rep(normals), rep(dist),
+                             rep(bias))
+    depth, blocked = depth.reshape(-1, k + 1), blocked.reshape(-1, k + 1)
+    count = blocked.sum(axis=1)
+    found = count > 0
+    vis[todo[~found]] = 1.0
+    todo = todo[found]
+    if todo.size == 0:
+        return vis
+    t_b = np.where(blocked[found], depth[found], 0.0).sum(axis=1) / count[found]
+    if ortho:
+        s = np.maximum(dist[todo] - t_b, 0.0)
+        width_px = s * src.radius / texel[todo]
+    else:
+        s = np.clip(t_b / dist[todo], 1e-6, 1.0)
+        width_px = extent[todo] * (1.0 - s) / (s * dist[todo]) / texel[todo]
+    wide = width_px >= 1.0  # narrower penumbrae keep the bilinear filter
+    todo, s = todo[wide], s[wide]
+    if todo.size == 0:
+        return vis
+    k = FILTER_SIDE * FILTER_SIDE
+    x = _taps(src, ortho, c, p_off[todo], u[todo], v[todo], s, FILTER_SIDE, sa[todo], sb[todo])
+    rep = lambda arr: np.repeat(arr[todo], k, axis=0)
+    _, blocked = _lookup(shadow, x.reshape(-1, 3), rep(p_off), rep(normals), rep(dist),
+                         rep(bias))
+    vis[todo] = 1.0 - blocked.reshape(-1, k).mean(axis=1)
+    return vis
+
+
+def visibility(shadow: ShadowMap, positions: np.ndarray, normals: np.ndarray,
+               radius: float | None = None) -> np.ndarray:
+    """Fraction of the light seen by each receiver (M,): 2x2 percentage-closer filtered for a
+    hard light, percentage-closer soft shadows for one with a size (source_of: the light's
+    own, or a sphere of ``radius`` / a sun of angular radius ``radius``)."""
+    positions = np.asarray(positions, np.float64)
+    normals = np.asarray(normals, np.float64)
+    m = positions.shape[0]
+    if not shadow.light.cast_shadow or m == 0:
+        return np.ones(m)
+    src = source_of(shadow.light, radius)
+    if jit.enabled():
+        return _compiled.visibility(shadow, src, positions, normals)
+    face_of, p_off, dist, bias, texel = _receivers(shadow, positions, normals)
+    hard = _hard(shadow, face_of, p_off, dist, bias)
+    if src.kind == HARD:
+        return hard
+    return _soft(shadow, src, positions, normals, face_of, p_off, dist, bias, texel, hard)
 
 
 def irradiance(
@@ -135,13 +385,16 @@ def irradiance(
 ) -> np.ndarray:
     """Direct irradiance (M, 3) in W/m^2 at receivers with unit normals (facing the viewer)."""
     if jit.enabled() and light.type in _compiled.KINDS and np.shape(positions)[0]:
-        return _compiled.irradiance(light, positions, normals, shadow)
+        src = source_of(light) if shadow is not None else None
+        return _compiled.irradiance(light, positions, normals, shadow, src)
     positions = np.asarray(positions, np.float64)
     normals = np.asarray(normals, np.float64)
     color = np.asarray(light.color, np.float64)
     if light.type == "SUN":
         cos_r = np.maximum(normals @ (-light.direction), 0.0)
         e = light.power * cos_r
+    elif light.type == "AREA":
+        e = lights_mod.area_irradiance(light, positions, normals)
     else:
         to_light = light.position - positions
         d2 = np.einsum("ij,ij->i", to_light, to_light)

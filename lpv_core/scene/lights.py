@@ -138,3 +138,156 @@ def texel_rays(view: LightView, rows: np.ndarray, cols: np.ndarray, width: int,
     dirs = (u[:, None] * right + v[:, None] * up + fwd) / np.sqrt(r2)[:, None]
     solid = (2.0 * t / width) * (2.0 * t / height) / (r2 * np.sqrt(r2))
     return dirs, solid
+
+
+# --------------------------------------------------------------------------- area emitters
+
+POLYGON_SIDES = 32  # a disk or ellipse emitter as a polygon of this many sides (same area)
+SPREAD_SPLIT = 4  # patches per side when a spread below pi weights the emitter's parts
+
+
+def area_frame(light: Light) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """An area light's centre, world half-extent vectors along its local X and Y (the
+    object's scale included, as Cycles sizes the emitter) and unit emitting normal."""
+    m = np.asarray(light.matrix, np.float64)
+    sx, sy = (float(s) for s in light.size)
+    return light.position, m[:3, 0] * (0.5 * sx), m[:3, 1] * (0.5 * sy), light.direction
+
+
+def is_round(light: Light) -> bool:
+    return light.type == "AREA" and light.shape in ("DISK", "ELLIPSE")
+
+
+def emitter_area(light: Light) -> float:
+    """World area (m^2) of an area light: 4 |u x v| for a rectangle, pi |u x v| for an ellipse."""
+    _, u, v, _ = area_frame(light)
+    cross = float(np.linalg.norm(np.cross(u, v)))
+    return (np.pi if is_round(light) else 4.0) * cross
+
+
+def area_radiance(light: Light) -> float:
+    """Radiance (W sr^-1 m^-2 per unit colour) of an area light: P / (pi A), Cycles' units
+    (tests/test_reference.py measures them; normalize off is folded into P by extraction)."""
+    area = emitter_area(light)
+    return light.power / (np.pi * area) if area > 0 else 0.0
+
+
+def spread_constants(light: Light) -> tuple[float, float]:
+    """(tan(spread / 2), normalisation) of Cycles' soft-box spread (kernel/light/area.h
+    area_light_spread_attenuation; light.cpp): the radiance towards angle t off the normal is
+    scaled by max((tan(s/2) - tan t) * norm, 0), norm = 1 / (tan(s/2) - s/2) (3 / (s/2)^3
+    below s/2 = 0.05), which keeps the emitted power. (0, 0) for the full spread pi."""
+    half = 0.5 * float(light.spread)
+    if half >= 0.5 * np.pi - 1e-9:
+        return 0.0, 0.0
+    half = max(half, 1e-6)  # Cycles' zero spread is a collimated beam: the narrowest here
+    norm = 1.0 / (np.tan(half) - half) if half > 0.05 else 3.0 / half**3
+    return float(np.tan(half)), float(norm)
+
+
+def concentric(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Shirley & Chiu's concentric map of [-1, 1]^2 onto the unit disk (keeps strata)."""
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    big = np.abs(a) > np.abs(b)
+    safe_a = np.where(a == 0, 1.0, a)
+    safe_b = np.where(b == 0, 1.0, b)
+    r = np.where(big, a, b)
+    phi = np.where(big, 0.25 * np.pi * b / safe_a, 0.5 * np.pi - 0.25 * np.pi * a / safe_b)
+    r = np.where((a == 0) & (b == 0), 0.0, r)
+    return r * np.cos(phi), r * np.sin(phi)
+
+
+def area_patches(light: Light) -> np.ndarray:
+    """The emitter as convex polygons (S, V, 3) in world space, vertices in one winding.
+
+    A rectangle is itself (S = 1, V = 4); a disk or ellipse a POLYGON_SIDES-gon of the same
+    area. With a spread below pi the emitter is split into SPREAD_SPLIT^2 quads (rectangle:
+    a grid; ellipse: the concentric map of the grid, rescaled to the ellipse's area) so that
+    each patch's spread weight is taken at its own centre."""
+    c, u, v, _ = area_frame(light)
+    round_ = is_round(light)
+    if spread_constants(light)[1] == 0.0:
+        if not round_:
+            corners = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]], np.float64)
+        else:
+            k = POLYGON_SIDES
+            ang = 2.0 * np.pi * np.arange(k) / k
+            grow = np.sqrt(2.0 * np.pi / (k * np.sin(2.0 * np.pi / k)))  # polygon area = pi
+            corners = np.c_[np.cos(ang), np.sin(ang)] * grow
+        return (c + corners[:, :1] * u + corners[:, 1:] * v)[None]
+    n = SPREAD_SPLIT
+    g = np.linspace(-1.0, 1.0, n + 1)
+    quads = []
+    for i in range(n):
+        for j in range(n):
+            quads.append([(g[i], g[j]), (g[i + 1], g[j]), (g[i + 1], g[j + 1]),
+                          (g[i], g[j + 1])])
+    q = np.array(quads, np.float64)  # (S, 4, 2)
+    if round_:
+        x, y = concentric(q[..., 0], q[..., 1])
+        q = np.stack([x, y], -1)
+        e1, e2 = q[:, 1] - q[:, 0], q[:, 3] - q[:, 0]
+        f1, f2 = q[:, 1] - q[:, 2], q[:, 3] - q[:, 2]
+        area = 0.5 * np.sum(np.abs(e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0])
+                            + np.abs(f1[:, 0] * f2[:, 1] - f1[:, 1] * f2[:, 0]))
+        q = q * np.sqrt(np.pi / area)
+    return c + q[..., :1] * u + q[..., 1:] * v
+
+
+def _edge_term(a: np.ndarray, b: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """Lambert's edge term gamma (n . (a x b) / |a x b|), gamma the angle a, b subtend."""
+    c = np.cross(a, b)
+    s = np.sqrt(np.einsum("...k,...k->...", c, c))
+    gamma = np.arctan2(s, np.einsum("...k,...k->...", a, b))
+    cn = np.einsum("...k,...k->...", c, n)
+    return np.where(s > 1e-300, gamma * cn / np.where(s > 1e-300, s, 1.0), 0.0)
+
+
+def polygon_irradiance(verts: np.ndarray, positions: np.ndarray,
+                       normals: np.ndarray) -> np.ndarray:
+    """Irradiance (M,) at receivers (unit normals) from a convex polygon (V, 3) of unit
+    radiance, by Lambert's contour integral E = 1/2 |sum gamma_i n . u_i| [Lambert 1760;
+    Arvo 1995], with the polygon clipped to each receiver's upper hemisphere (the part below
+    the tangent plane sends nothing; the clip adds the edge along the horizon)."""
+    p = np.asarray(positions, np.float64)
+    n = np.asarray(normals, np.float64)
+    a = np.asarray(verts, np.float64)[None] - p[:, None]  # (M, V, 3)
+    b = np.roll(a, -1, axis=1)
+    ha = np.einsum("mvk,mk->mv", a, n)
+    hb = np.roll(ha, -1, axis=1)
+    up_a, up_b = ha >= 0.0, hb >= 0.0
+    cross = up_a != up_b
+    t = np.where(cross, ha / np.where(cross, ha - hb, 1.0), 0.0)
+    x = a + t[..., None] * (b - a)
+    start = np.where(up_a[..., None], a, x)
+    end = np.where(up_b[..., None], b, x)
+    nn = n[:, None]
+    total = np.sum(np.where(up_a | up_b, _edge_term(start, end, nn), 0.0), axis=1)
+    leave, enter = up_a & ~up_b, ~up_a & up_b
+    x_leave = np.einsum("mv,mvk->mk", leave.astype(np.float64), x)
+    x_enter = np.einsum("mv,mvk->mk", enter.astype(np.float64), x)
+    closing = leave.any(axis=1) & enter.any(axis=1)
+    total = total + np.where(closing, _edge_term(x_leave, x_enter, n), 0.0)
+    return 0.5 * np.abs(total)
+
+
+def area_irradiance(light: Light, positions: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """Unoccluded irradiance (M,) per unit colour of an area light at receivers: its radiance
+    P / (pi A) times the exact polygon integral (area_patches), each patch weighted by
+    Cycles' spread attenuation towards the receiver; nothing behind the emitter."""
+    p = np.asarray(positions, np.float64)
+    n = np.asarray(normals, np.float64)
+    c, _, _, axis = area_frame(light)
+    front = (p - c) @ axis > 0.0
+    patches = area_patches(light)
+    tan_half, norm = spread_constants(light)
+    e = np.zeros(p.shape[0])
+    for poly in patches:
+        part = polygon_irradiance(poly, p, n)
+        if norm > 0.0:
+            to = p - poly.mean(axis=0)
+            cos_t = (to @ axis) / np.maximum(np.linalg.norm(to, axis=1), 1e-300)
+            tan_t = np.sqrt(np.maximum(1.0 - cos_t * cos_t, 0.0)) / np.maximum(cos_t, 1e-300)
+            part = part * np.maximum((tan_half - tan_t) * norm, 0.0)
+        e = e + part
+    return np.where(front, area_radiance(light) * e, 0.0)
