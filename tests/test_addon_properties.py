@@ -34,7 +34,7 @@ OBJECT_VALUES = {"gi_caster": False, "gi_occluder": False, "gi_receiver": False,
                  "area_type": "TRANSITION", "area_falloff": 0.8, "area_intensity": 3.0,
                  "area_tint": (1.0, 0.5, 0.25)}
 MATERIAL_VALUES = {"use_bleed_color": True, "bleed_color": (0.1, 0.7, 0.1),
-                   "bleed_intensity": 1.5}
+                   "bleed_intensity": 1.5, "emission_gi_intensity": 0.5}
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -191,6 +191,7 @@ def test_extraction_carries_material_bleed_and_light_tint(box):
     green.lpv.use_bleed_color = True
     green.lpv.bleed_color = (0.9, 0.1, 0.2)
     green.lpv.bleed_intensity = 2.0
+    green.lpv.emission_gi_intensity = 0.25
     bpy.data.materials["Red"].lpv.bleed_intensity = 0.5  # no bleed colour: scales albedo
     light = bpy.data.lights["Spot"]
     light.lpv.gi_intensity = -0.5
@@ -201,6 +202,7 @@ def test_extraction_carries_material_bleed_and_light_tint(box):
     np.testing.assert_allclose(mats["Red"].gi_reflectance(),
                                0.5 * np.array(scenes.RED, np.float32), rtol=1e-5)
     assert mats["White"].bleed_color is None
+    assert mats["Green"].emission_gi_intensity == 0.25 and mats["Red"].emission_gi_intensity == 1
     (lamp,) = s.lights
     assert lamp.gi_intensity == -0.5
     np.testing.assert_allclose(lamp.gi_color, [1.0, 0.5, 0.0])

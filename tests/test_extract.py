@@ -244,8 +244,9 @@ def test_missing_camera_is_a_clear_error():
 # ---------------------------------------------------------------------------- materials
 
 
-# Principled's diffuse under its dielectric layer at IOR 1.5: 1 - F0 (test_materials.py).
-PRINCIPLED = 1.0 - 0.04
+# A default Principled's diffuse under its dielectric layer (roughness 0.5, IOR 1.5): Cycles'
+# Diffuse Color of a white one, measured (tests/test_materials.py checks the rule on Cycles).
+PRINCIPLED = 0.96261
 
 
 def test_material_albedo_sources_and_per_triangle_assignment():
@@ -295,7 +296,7 @@ def test_textured_base_color_is_the_image_mean():
                        atol=1e-6)
     # Byte images hold sRGB-encoded values: the mean is taken after linearising.
     byte = bpy.data.images.new("grey", 2, 2)
-    byte.pixels.foreach_set(np.full(16, 0.5, np.float32))
+    byte.pixels.foreach_set(np.tile(np.float32([0.5, 0.5, 0.5, 1.0]), 4))  # opaque
     tex.image = byte
     stored = np.array(byte.pixels[:3])
     linear = np.where(stored <= 0.04045, stored / 12.92, ((stored + 0.055) / 1.055) ** 2.4)
