@@ -238,6 +238,18 @@ def test_white_texture_gives_the_untextured_passes():
                                    err_msg=name)
 
 
+def test_corner_albedo_for_the_overlay():
+    """The overlay's per-vertex albedo: albedo x the texture's mean x the corner colours."""
+    mats = [Material("tex", np.float32([0.5, 1.0, 1.0]), texture=CHECKER), Material("plain")]
+    cc = np.full((2, 3, 3), 0.5, np.float32)
+    got = tx.corner_albedo(mats, np.array([0, 1]), np.float32([[0.5, 1, 1], [0.8, 0.8, 0.8]]),
+                           cc)
+    mean = 0.5 * (RED + GREEN)
+    np.testing.assert_allclose(got[0], np.tile(0.5 * np.float32([0.5, 1, 1]) * mean, (3, 1)),
+                               rtol=1e-6)
+    np.testing.assert_allclose(got[1], np.full((3, 3), 0.4), rtol=1e-6)
+
+
 # --------------------------------------------------------------------------- worker
 
 

@@ -192,7 +192,13 @@ def _geometry(scene) -> dict:
     return {
         "positions": scene.positions.astype(np.float32),
         "normals": scene.normals.astype(np.float32),
-        "albedo": scene.albedo_per_triangle().astype(np.float32),
+        # per corner where textures or corner colours vary it (the overlay's vertex colour)
+        "albedo": (scene.albedo_per_triangle().astype(np.float32)
+                   if scene.corner_colors is None and all(m.texture is None
+                                                          for m in scene.materials)
+                   else core.scene.textures.corner_albedo(
+                       scene.materials, scene.material_index, scene.albedo_per_triangle(),
+                       scene.corner_colors)),
         "receiver": scene.flag("receiver"),
     }
 

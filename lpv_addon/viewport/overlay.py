@@ -13,7 +13,7 @@ half a cell along the viewer-facing normal, moved out of the slabs an occluder's
 off (``lookup.sample_points`` / ``gap_corrected``; skipped for a cascade without gaps),
 trilinear over the 8 nearest cells (zero outside the grid) leaving out corners behind
 occluders and renormalising (``injection.visible_corners``), then the irradiance kernel of
-``sh.irradiance_weights`` / s^2; clamp at zero; cascades add up. Indirect radiance = irradiance / pi x albedo, 0 where ``gi_receiver`` is off. Per-vertex
+``sh.irradiance_weights`` / s^2; clamp at zero; cascades add up. Indirect radiance = irradiance / pi x albedo, 0 where ``gi_receiver`` is off (the albedo per corner: x corner colour x a texture's mean, textures.corner_albedo). Per-vertex
 shading would blur the LPV over large polygons (a Cornell wall is one quad). Transition areas are multiplied into the
 uploaded grids per cell (exact inside a box and far from it; the falloff is resolved at cell
 size), clip areas act in propagation and in the visibility already.
@@ -268,7 +268,7 @@ def _geometry_batch(result):
     pos = geo["positions"].reshape(-1, 3)
     nrm = geo["normals"].reshape(-1, 3)
     col = np.empty((t, 3, 4), np.float32)
-    col[..., :3] = geo["albedo"][:, None, :]
+    col[..., :3] = np.asarray(geo["albedo"], np.float32).reshape(t, -1, 3)  # (T,3) or (T,3,3)
     col[..., 3] = np.asarray(geo["receiver"], np.float32)[:, None]
     return batch_for_shader(_lpv_shader(), "TRIS", {"pos": _c(pos, 3), "nor": _c(nrm, 3),
                                                     "col": _c(col, 4)})
