@@ -583,6 +583,9 @@ def light_from_object(ob: bpy.types.Object, matrix: np.ndarray) -> core.scene.Li
         gi_intensity=gi,
         gi_color=gi_color,
         cast_shadow=bool(getattr(light, "use_shadow", True)),
+        shape=str(getattr(light, "shape", "SQUARE")) if kind == "AREA" else "SQUARE",
+        spread=float(getattr(light, "spread", math.pi)) if kind == "AREA" else math.pi,
+        angle=float(getattr(light, "angle", 0.0)) if kind == "SUN" else 0.0,
     )
 
 
