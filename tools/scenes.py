@@ -39,6 +39,7 @@ __all__ = [
     "library",
     "point_room",
     "save_scene",
+    "soft_room",
     "sun_yard",
     "sunlit_room",
 ]
@@ -312,6 +313,35 @@ def library(resolution: Sequence[int] = (128, 128), *, shader: str = "DIFFUSE",
     return scene_facts(scene, lamps)
 
 
+def soft_room(resolution: Sequence[int] = (128, 128), *, shader: str = "DIFFUSE",
+              new_file: bool = True) -> dict:
+    """A closed 4 x 4 x 2.8 m room (x, y in [-2, 2]) with a table, a box and a stool, lit by
+    a 1 x 1 m square area light under the ceiling (300 W) and a point light of radius 0.25 m
+    (150 W): both cast soft shadows. Camera inside a corner, looking at the table. Returns
+    the scene's facts."""
+    scene = new_scene("soft_room", resolution, new_file)
+    wall = diffuse_material("Wall", (0.75, 0.73, 0.70), shader)
+    floor = diffuse_material("Floor", (0.55, 0.45, 0.35), shader)
+    wood = diffuse_material("Wood", (0.55, 0.40, 0.25), shader)
+    blue = diffuse_material("Blue", (0.20, 0.35, 0.60), shader)
+    lo, hi = (-2.0, -2.0, 0.0), (2.0, 2.0, 2.8)
+    add_mesh_object(scene, "Floor", box_geometry(lo, hi, ["-z"], inward=True), floor)
+    add_mesh_object(scene, "Room", box_geometry(lo, hi, ["+z", "-x", "+x", "-y", "+y"],
+                                                inward=True), wall)
+    legs = [box_geometry((x - 0.03, y - 0.03, 0.0), (x + 0.03, y + 0.03, 0.72))
+            for x in (-0.55, 0.55) for y in (-0.35, 0.35)]
+    table = _merge(box_geometry((-0.6, -0.4, 0.72), (0.6, 0.4, 0.77)), *legs)
+    add_mesh_object(scene, "Table", table, wood, location=(-0.3, 0.3, 0.0), rotation_z_deg=15.0)
+    add_mesh_object(scene, "Box", box_geometry((-0.25, -0.25, 0.0), (0.25, 0.25, 0.5)), blue,
+                    location=(0.9, -0.5, 0.0), rotation_z_deg=30.0)
+    add_mesh_object(scene, "Stool", box_geometry((-0.2, -0.2, 0.0), (0.2, 0.2, 0.45)), wood,
+                    location=(-1.2, -0.9, 0.0))
+    area = add_light(scene, "Panel", "AREA", 300.0, (-0.2, 0.2, 2.7), shape="SQUARE", size=1.0)
+    bulb = add_light(scene, "Bulb", "POINT", 150.0, (1.1, -0.9, 1.9), shadow_soft_size=0.25)
+    add_camera(scene, (1.8, -1.8, 1.7), (-0.4, 0.4, 0.4), lens_mm=18.0)
+    return scene_facts(scene, [area, bulb])
+
+
 BUILDERS: dict[str, Callable[..., dict]] = {
     "cornell_box": cornell_box,
     "point_room": point_room,
@@ -319,6 +349,7 @@ BUILDERS: dict[str, Callable[..., dict]] = {
     "city": city,
     "sunlit_room": sunlit_room,
     "library": library,
+    "soft_room": soft_room,
 }
 
 # Named scenes of the team (tools/make_references.py): name -> (builder, keyword arguments).
@@ -332,6 +363,7 @@ SCENES: dict[str, tuple[str, dict]] = {
     "city": ("city", {}),
     "sunlit_room": ("sunlit_room", {}),
     "library": ("library", {}),
+    "soft_room": ("soft_room", {}),
 }
 
 
