@@ -1,7 +1,10 @@
 """Extraction benchmark: median ms per phase for a ~1M-triangle mesh and many instances.
 
 Usage: python -m tools.extract_bench [--triangles 1000000] [--repeat 5] [--instances 100]
-Runs headless with the bpy module; prints JSON.
+       python -m tools.extract_bench --textured 100 [--image-size 1024]
+Runs headless with the bpy module; prints JSON. ``--textured N``: N objects, each with its own
+material and its own image file (PNG, N x size^2): the cold extraction (every image read), a
+second one (nothing changed), and one after one image file changed; time and peak memory.
 """
 
 from __future__ import annotations
@@ -19,7 +22,7 @@ import numpy as np
 
 PHASES = (
     "mesh_eval", "triangles", "positions", "normals", "materials", "transform",
-    "lights", "camera", "make_scene",
+    "lights", "camera", "make_scene", "corners",
 )
 
 
@@ -104,6 +107,84 @@ def measure(bpy, extract, repeat: int) -> dict:
     }
 
 
+def _memory_kb(field: str) -> int:
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith(field + ":"):
+                return int(line.split()[1])
+    return 0
+
+
+def _reset_peak() -> None:
+    """Start a new VmHWM window (Linux: clear_refs 5 resets the peak resident size)."""
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+    except OSError:
+        pass
+
+
+def build_textured(bpy, count: int, size: int, folder: str) -> list:
+    """``count`` quads in a row, each with its own Principled material reading its own
+    ``size``^2 PNG (a generated colour grid, saved and loaded like any file)."""
+    bpy.ops.wm.read_homefile(use_empty=True)
+    scene = bpy.context.scene
+    images = []
+    for k in range(count):
+        img = bpy.data.images.new(f"tex{k}", size, size)
+        img.generated_type = "COLOR_GRID"
+        img.generated_color = ((k % 10) / 10.0, 0.5, 1.0 - (k % 7) / 7.0, 1.0)
+        img.filepath_raw = os.path.join(folder, f"tex{k}.png")
+        img.file_format = "PNG"
+        img.save()
+        images.append(img)
+        mat = bpy.data.materials.new(f"mat{k}")
+        nodes = mat.node_tree.nodes
+        tex = nodes.new("ShaderNodeTexImage")
+        tex.image = img
+        mat.node_tree.links.new(tex.outputs["Color"], nodes["Principled BSDF"].inputs[0])
+        me = bpy.data.meshes.new(f"quad{k}")
+        me.from_pydata([(k, 0, 0), (k + 1, 0, 0), (k + 1, 1, 0), (k, 1, 0)], [], [(0, 1, 2, 3)])
+        me.uv_layers.new(name="UVMap")
+        me.materials.append(mat)
+        scene.collection.objects.link(bpy.data.objects.new(f"quad{k}", me))
+    return images
+
+
+def textured(bpy, extract, count: int, size: int) -> dict:
+    """Cold, unchanged and one-image-changed extraction of the textured scene."""
+    from lpv_addon.scene_io import materials
+
+    folder = tempfile.mkdtemp(prefix="lpv_tex_bench_")
+    t0 = time.perf_counter()
+    images = build_textured(bpy, count, size, folder)
+    report = {"materials": count, "image_size": size, "build_s": round(time.perf_counter() - t0, 2)}
+
+    def once(label: str) -> None:
+        depsgraph = bpy.context.evaluated_depsgraph_get()
+        rss = _memory_kb("VmRSS")
+        cached = set(materials._textures)
+        _reset_peak()
+        t = time.perf_counter()
+        s = extract.extract_scene(depsgraph, require_camera=False)
+        ms = (time.perf_counter() - t) * 1000.0
+        report[label] = {"ms": round(ms, 1),
+                         "peak_extra_mb": round((_memory_kb("VmHWM") - rss) / 1024.0, 1),
+                         "textured_materials": sum(m.texture is not None for m in s.materials),
+                         "images_read": len(set(materials._textures) - cached)}
+
+    once("cold")
+    once("unchanged")
+    img = images[count // 2]  # repaint one image and save it: its file changes
+    px = np.empty(len(img.pixels), np.float32)
+    img.pixels.foreach_get(px)
+    img.pixels.foreach_set(1.0 - px)
+    img.save()
+    once("one_image_changed")
+    report["rss_mb"] = round(_memory_kb("VmRSS") / 1024.0, 1)
+    return report
+
+
 def main(argv: list[str] | None = None) -> dict:
     """Build the scenes, time extraction, print and return the JSON report."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -112,12 +193,21 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--instances", type=int, default=100)
     ap.add_argument("--instance-triangles", type=int, default=2_000)
     ap.add_argument("--flat", action="store_true", help="flat shading (face normals)")
+    ap.add_argument("--textured", type=int, default=0,
+                    help="instead: this many materials, each with its own image texture")
+    ap.add_argument("--image-size", type=int, default=1024)
     args = ap.parse_args(argv)
     # Keep a headless run out of the user's Blender config (must precede `import bpy`).
     os.environ.setdefault("BLENDER_USER_RESOURCES", tempfile.mkdtemp(prefix="lpv_bench_"))
     import bpy
 
     from lpv_addon.scene_io import extract
+
+    if args.textured:
+        report = {"blender": bpy.app.version_string, "numpy": np.__version__,
+                  **textured(bpy, extract, args.textured, args.image_size)}
+        print(json.dumps(report, indent=2))
+        return report
 
     t0 = time.perf_counter()
     big, insts = build_scene(bpy, args.triangles, args.instances, args.instance_triangles,

@@ -31,7 +31,9 @@ from .._core import core
 DEFAULT_ALBEDO = (0.8, 0.8, 0.8)
 MAGENTA = (1.0, 0.0, 1.0)  # what Cycles shows for a missing image
 TEXTURE_BUDGET = 1 << 20  # pixels per image after resampling
-_CACHE_PIXELS = 64 << 20  # cached texture pixels across extractions (about 768 MB float32)
+# Texture pixels kept across extractions (1.5 GiB of float32 RGB: 128 images at the budget);
+# the extracted Scene holds the same arrays, so the cache adds nothing while a Scene lives.
+_CACHE_PIXELS = 128 << 20
 # Blender's colour -> float socket conversion: Rec.709 luminance (measured: a magenta image on
 # Metallic gives metallic 0.2848 in Cycles).
 _LUMA = np.array([0.2126, 0.7152, 0.0722])
@@ -571,26 +573,35 @@ def image_pixels(image) -> tuple[str, np.ndarray | None, float]:
     image.pixels.foreach_get(px)
     if dirty:
         digest = _hash(digest + hashlib.blake2b(px.tobytes(), digest_size=12).hexdigest())
-    rgba = _as_rgba(px.reshape(h, w, channels))
-    if image.alpha_mode == "STRAIGHT" and channels == 4:
-        # Cycles associates straight alpha: Color = colour x alpha (in the byte's own
-        # encoding, rounded to a byte, before linearising; measured, docs/algorithm.md).
-        rgba[..., :3] *= rgba[..., 3:]
-        if not image.is_float:
-            rgba[..., :3] = np.rint(rgba[..., :3] * 255.0) / 255.0
-    if not image.is_float and image.colorspace_settings.name == "sRGB":
-        rgba[..., :3] = _byte_srgb_to_linear(rgba[..., :3])
-    elif not image.is_float and image.colorspace_settings.name not in _LINEAR_SPACES:
-        print(f"LPV GI: image '{image.name}': colour space "
-              f"'{image.colorspace_settings.name}' read as linear", file=sys.stderr)
-    rgba = resample_to_budget(rgba, TEXTURE_BUDGET)
-    with np.errstate(invalid="ignore"):
-        bad = ~np.isfinite(rgba) | (rgba < 0)
-    if bad.any():
-        print(f"LPV GI: image '{image.name}': {int(bad.any(axis=2).sum())} non-finite or "
-              "negative pixels set to 0", file=sys.stderr)
-        rgba[bad] = 0.0
-    entry = np.ascontiguousarray(rgba[..., :3]), float(rgba[..., 3].mean(dtype=np.float64))
+    rgba = px.reshape(h, w, channels)
+    if channels != 4:
+        rgba = _as_rgba(rgba)
+    rgb, alpha = rgba[..., :3], rgba[..., 3:]
+    mean_alpha = float(np.nan_to_num(alpha.mean(dtype=np.float64), nan=1.0))
+    straight = image.alpha_mode == "STRAIGHT" and channels == 4 and mean_alpha != 1.0
+    space = image.colorspace_settings.name
+    if not image.is_float:
+        # Byte values k / 255. Cycles associates straight alpha: colour x alpha in the byte's
+        # own encoding, rounded to a byte, then linearised (measured, docs/algorithm.md).
+        q = ((rgb * alpha if straight else rgb) * np.float32(255.0) + np.float32(0.5)).astype(
+            np.uint8)
+        if space == "sRGB":
+            rgb = _BYTE_SRGB[q]
+        else:
+            if space not in _LINEAR_SPACES:
+                print(f"LPV GI: image '{image.name}': colour space '{space}' read as linear",
+                      file=sys.stderr)
+            rgb = q * np.float32(1.0 / 255.0)
+    else:
+        rgb = rgb * alpha if straight else np.ascontiguousarray(rgb)
+        with np.errstate(invalid="ignore"):
+            bad = ~(np.isfinite(rgb) & (rgb >= 0))
+        if bad.any():
+            print(f"LPV GI: image '{image.name}': {int(bad.any(axis=2).sum())} non-finite or "
+                  "negative pixels set to 0", file=sys.stderr)
+            rgb[bad] = 0.0
+    rgb = resample_to_budget(rgb, TEXTURE_BUDGET)
+    entry = np.ascontiguousarray(rgb, np.float32), mean_alpha
     _textures[digest] = entry
     while sum(t[0].shape[0] * t[0].shape[1] for t in _textures.values()) > _CACHE_PIXELS and \
             len(_textures) > 1:
