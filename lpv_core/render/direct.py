@@ -82,12 +82,13 @@ def source_of(light: Light, radius: float | None = None) -> Source:
     return Source(SPHERE, r) if r > 0 and np.isfinite(r) else Source(HARD)
 
 
-def render_shadow_map(raster: Rasterizer, light: Light, bounds, resolution: int) -> ShadowMap:
+def render_shadow_map(raster: Rasterizer, light: Light, bounds, resolution: int,
+                      fit=None) -> ShadowMap:
     """Rasterise the light's views and keep the nearest occluder per texel: its distance from
     the light (depth along the view for the sun), in float32 from the positions relative to
     the rasteriser's origin as they are read back (no float64 copy of the frame: a 1024^2 map
     took 100 ms that way, most of it converting and subtracting 3M floats twice)."""
-    views = lights_mod.light_views(light, bounds)
+    views = lights_mod.light_views(light, bounds, fit)  # fit: a sun's window (light_views)
     stack = np.empty((len(views), resolution, resolution), np.float32)
     origin = np.asarray(raster.origin, np.float64)
     for i, view in enumerate(views):
@@ -252,8 +253,9 @@ def _hard(shadow: ShadowMap, face_of, p_off, dist, bias) -> np.ndarray:
             u = vp[:, 0] / z / view.tan_half
             v = vp[:, 1] / z / view.tan_half
         d = dist[sel]
-        fx = (u + 1.0) * 0.5 * res - 0.5
-        fy = (1.0 - v) * 0.5 * res - 0.5
+        # (clipped only so that points far outside the view cast to int: they read 1)
+        fx = np.clip((u + 1.0) * 0.5 * res - 0.5, -2.0, res + 1.0)
+        fy = np.clip((1.0 - v) * 0.5 * res - 0.5, -2.0, res + 1.0)
         x0 = np.floor(fx).astype(int)
         y0 = np.floor(fy).astype(int)
         tx = fx - x0
