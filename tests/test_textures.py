@@ -59,6 +59,23 @@ def test_sampling_bad_input_is_named_and_finite():
     assert np.isfinite(got).all()
 
 
+def test_bad_pixels_and_corner_colours_reach_no_stage():
+    """NaN, Inf and negative texels and corner colours: 0 texels, corner colour 1 / 0."""
+    bad = np.float32([[[np.nan, np.inf, -1.0], [0.5, 0.5, 0.5]]])
+    mats = [Material("m", np.ones(3, np.float32), texture=Texture("bad", bad, "Closest"))]
+    cc = np.ones((1, 3, 3), np.float32)
+    cc[0, :, 0], cc[0, :, 1] = np.nan, -2.0
+    lay = tx.layout(mats, np.zeros(1, np.int32), np.full((1, 3, 2), 0.25, np.float32), cc)
+    got = tx.Surface(lay, tx.Store()).factor(np.zeros(2, np.int64), np.full((2, 2), 0.2))
+    np.testing.assert_array_equal(got, np.zeros((2, 3)))  # texel (0, 0) cleaned to 0
+    lay.uvs[:] = 0.75
+    got = tx.Surface(lay, tx.Store()).factor(np.zeros(1, np.int64), np.full((1, 2), 0.2))
+    np.testing.assert_array_equal(got, [[0.5, 0.0, 0.5]])  # colour (1, 0, 1) x texel 0.5
+    with pytest.raises(ValueError, match="'flat'.*pixels"):
+        tx.Store().fitted(tx.layout([Material("m", texture=Texture("flat", np.ones((4, 4))))],
+                                    np.zeros(1, np.int32)))
+
+
 def test_budget_fits_and_box_filters():
     limit = tx.BUDGET_BYTES // tx.TEXEL_BYTES
     assert tx.fitted_shapes([(8192, 8192)]) == [(4096, 4096)]  # 768 MiB -> 192 MiB

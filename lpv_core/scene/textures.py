@@ -206,9 +206,13 @@ def layout(materials: list, material_index, uvs=None, corner_colors=None) -> Lay
         albedo_id[k] = slot[d]
         gi_id[k] = slot[d] if m.bleed_color is None else -1
     mat = np.asarray(material_index, np.int64)
+    if corner_colors is not None:
+        corner_colors = np.asarray(corner_colors, np.float32)
+        if not (np.isfinite(corner_colors).all() and corner_colors.min(initial=0) >= 0):
+            corner_colors = np.where(np.isfinite(corner_colors),  # non-finite: no colour
+                                     np.maximum(corner_colors, 0), 1).astype(np.float32)
     return Layout(textures, digests, albedo_id[mat], gi_id[mat], corners[mat],
-                  None if uvs is None else np.asarray(uvs, np.float32),
-                  None if corner_colors is None else np.asarray(corner_colors, np.float32))
+                  None if uvs is None else np.asarray(uvs, np.float32), corner_colors)
 
 
 class Store:
@@ -222,13 +226,19 @@ class Store:
 
     def fitted(self, lay: Layout) -> list:
         """The Layout's textures at their fitted sizes (those no longer used are let go)."""
+        for tex in lay.textures:
+            shape = np.shape(tex.pixels)
+            if len(shape) != 3 or shape[2] != 3 or min(shape[:2]) < 1:
+                raise ValueError(f"texture '{tex.name}': pixels must be (H, W, 3), not {shape}")
         shapes = fitted_shapes([np.shape(t.pixels)[:2] for t in lay.textures], self.budget)
         held, out = {}, []
         for tex, d, shape in zip(lay.textures, lay.digests, shapes):
             entry = self._held.get(d)
             if entry is None or entry.pixels.shape[:2] != shape:
-                entry = Texture(tex.name, resampled(tex.pixels, shape), tex.interpolation,
-                                tex.extension, d)
+                px = resampled(tex.pixels, shape)
+                if not (np.isfinite(px).all() and px.min() >= 0):  # no NaN reaches a stage
+                    px = np.maximum(np.nan_to_num(px, nan=0.0, posinf=0.0, neginf=0.0), 0.0)
+                entry = Texture(tex.name, px, tex.interpolation, tex.extension, d)
                 self.prepared += 1
             held[d] = entry
             out.append(entry)
