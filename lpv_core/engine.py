@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import areas, cascades, geometry_volume, injection, lookup, planner, propagation
+from . import areas, cascades, geometry_volume, injection, lookup, planner, propagation, sources
 from .grid import Grid
 from .propagation import sweep
 from .runtime import blas, heap, jit
@@ -141,6 +141,7 @@ class Engine:
         from .render.shadows import ShadowCache
 
         self._shadows = ShadowCache()  # direct-light shadow maps of the current geometry
+        self.source_maps = sources.SourceMaps()  # the World's and the emitters' shadow maps
         self._shadow_memo = None  # (inputs, plan) of _shadow_plan
         self._rsm_memo = None  # (inputs, plan) of _rsm_plan
 
@@ -398,27 +399,28 @@ class Engine:
             content = content_key(scene, geo)
             key = scene_key(scene, chain, content=content)
             base = scene_key(scene, chain[-1:], content=content)  # inner cascades aside
-        if key != self._cache_key and reproject and active:
-            shifted = self._reprojected(chain, base, active, stats)
+        with Timer(stats, "change_tracking"):
+            refl = reflectance_key(scene)
+        srcs = sources.gi_sources(scene, refl, stats)  # the World, emissive materials
+        if key != self._cache_key and reproject and (active or srcs):
+            shifted = self._reprojected(chain, base, active + srcs, stats)
             if shifted is not None:
                 per_light, vpl_sample = shifted
                 visibilities = [self._visibility(scene, g, stats) for g in chain]
                 self._cache_key = None  # the next update is the refresh
                 stats.info["refresh_pending"] = True
-                return self._result(chain, per_light, vpl_sample, active, settings.intensity,
-                                    visibilities, stats, 0, [], t0,
+                return self._result(chain, per_light, vpl_sample, active + srcs,
+                                    settings.intensity, visibilities, stats, 0, [], t0,
                                     {g: self.gaps(g) for g in chain})
         if key != self._cache_key:
             self._cache_key, self._lights, self._volumes = key, {}, {}
             self._cache_base, self._cache_chain = base, chain
             self._refl_key = None
-        with Timer(stats, "change_tracking"):
-            refl = reflectance_key(scene)
         # GI reflectance (albedo x bleed) only changes what the lights' RSMs reflect: a light
         # is recomputed when its re-rendered RSM differs, i.e. when it sees a changed material.
         refl_changed = self._refl_key is not None and refl != self._refl_key
         self._refl_key = refl
-        if not active:
+        if not active and not srcs:
             if not scene.lights:
                 stats.skip("lpv", "scene", "no lights")
             stats.ms["lpv_update"] = (time.perf_counter() - t0) * 1000.0
@@ -435,8 +437,11 @@ class Engine:
                                                stats)
             per_light[light.name], vpl_sample[light.name] = grids, sample
             vpl_count += count
+        for src in srcs:  # no RSM: caster surfels lit by the source's direct light
+            per_light[src.name] = self._source(scene, src, run, (lo, hi), stats)
+            vpl_sample[src.name] = self._lights[src.name].sample
         self._small_enclosures(scene, active, chain, geo, stats)
-        return self._result(chain, per_light, vpl_sample, active, settings.intensity,
+        return self._result(chain, per_light, vpl_sample, active + srcs, settings.intensity,
                             visibilities, stats, vpl_count, run.iterations, t0,
                             {g: self.gaps(g) for g in chain})
 
@@ -524,6 +529,18 @@ class Engine:
         flux = rsm.flux if kept + rsm.flux.nbytes <= FLUX_KEPT else _digest(rsm.flux)
         self._lights[light.name] = LightGrids(light_key(light), totals, sample, flux, res)
         return totals, sample, rsm.count
+
+    def _source(self, scene: Scene, src, run: _ChainRun, bounds, stats: Stats) -> list:
+        """A sources.Source's grids per cascade (sources.propagate), cached like a light's
+        while its source_key and the scene key hold."""
+        entry = self._lights.get(src.name)
+        if entry is not None and entry.key == src.source_key:
+            stats.skip("sources", src.name, "unchanged since the last update: grids reused")
+            return entry.grids
+        totals = sources.propagate(self, scene, src, run, bounds, stats)
+        empty = (np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32))
+        self._lights[src.name] = LightGrids(src.source_key, totals, empty, None, 0)
+        return totals
 
     @staticmethod
     def _result(chain, per_light, vpl_sample, active, intensity, visibilities, stats, vpl_count,
@@ -675,6 +692,7 @@ class Engine:
         """Forget cached grids and shadow maps: the next update recomputes everything."""
         self._cache_key, self._lights, self._volumes = None, {}, {}
         self._shadows.clear()
+        self.source_maps.reset(None)
         self._shadow_memo = self._rsm_memo = None
         self._cache_base = self._cache_chain = None
 
@@ -874,7 +892,10 @@ def scene_key(scene: Scene, chain, geo: str | None = None, content: str | None =
 
 
 def light_key(light) -> tuple:
-    """What a light's propagated grid depends on (not gi_intensity / gi_color: combine only)."""
+    """What a light's propagated grid depends on (not gi_intensity / gi_color: combine only);
+    a sources.Source's own key."""
+    if isinstance(light, sources.Source):
+        return light.source_key
     return (light.type, np.asarray(light.matrix, np.float64).tobytes(),
             np.asarray(light.color, np.float64).tobytes(), float(light.power),
             float(light.spot_size), float(light.spot_blend), tuple(light.size),

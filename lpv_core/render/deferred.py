@@ -4,14 +4,15 @@ Output passes follow Cycles' names and meaning:
   Diffuse Color    albedo of the surface seen by the pixel;
   Diffuse Direct   direct irradiance / pi (so Direct x Color is the reflected direct radiance);
   Diffuse Indirect LPV irradiance / pi;
-  Combined         (Direct + Indirect) x Color, alpha 1 (Cycles' film is opaque by default).
+  Combined         (Direct + Indirect) x Color + emission, the World where no surface is seen,
+                   alpha 1 (Cycles' film is opaque by default).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from .. import areas, lookup
+from .. import areas, lookup, sources
 from ..engine import Engine, LPVResult, Stats, Timer
 from ..scene.model import Scene
 from . import direct
@@ -111,6 +112,9 @@ def _render_samples(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats,
                                            scene.settings.shadow_resolution, stats)
                 e = direct.irradiance(light, pos, nrm, shadow)
                 e_dir = e if e_dir is None else e_dir + e  # the first light: no zeros added
+            e_src = sources.direct(engine, scene, (lo, hi), pos, nrm, stats)  # World, emitters
+            if e_src is not None:
+                e_dir = e_src if e_dir is None else e_dir + e_src
             if e_dir is not None:
                 diff_dir[mask] = e_dir / np.pi
         if lpv.values is not None:
@@ -141,6 +145,8 @@ def _render_samples(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats,
             stats.skip("lookup", "all pixels", "no LPV (no GI-contributing light or geometry)")
     combined = np.ones((h, w, 4), np.float32)
     combined[..., :3] = (diff_dir + diff_ind) * color
+    seen = mask if scene.triangle_count else np.zeros((h, w), bool)
+    sources.camera_light(engine, scene, projection, seen, combined)  # emitters, the World
     passes = {
         "Combined": combined,
         "Diffuse Direct": diff_dir,

@@ -1,0 +1,148 @@
+"""Emissive triangles as light sources without any RSM: clusters of emitting triangles (per
+material and object, split along their longest extent), each triangle's exact unoccluded
+irradiance at a receiver by Lambert's contour integral over the triangle clipped to the
+receiver's horizon (valid in the near field, beside a panel), times the visibility of the
+cluster's centre (a cube shadow map, like a point light's, of the scene without emitters).
+Emission is two-sided, as Cycles' mesh lights."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .scene.model import Light, Scene
+
+MAX_CLUSTERS = 8  # shadow maps of 6 faces each; larger emitters split until this many
+SPLIT_SHARE = 1.0 / 16.0  # a cluster wider than this share of the box diagonal is split
+SHADOW_RESOLUTION = 256
+
+
+@dataclass
+class Cluster:
+    """Emitting triangles of one material (and object) seen from one shadow-map centre."""
+
+    name: str
+    material: int
+    triangles: np.ndarray  # (n,) indices into the scene's triangles
+    corners: np.ndarray  # (n, 3, 3) float64
+    radiance: np.ndarray  # (3,) float64
+    centre: np.ndarray
+    radius: float
+
+    def light(self) -> Light:
+        """The POINT light whose cube shadow map gives the cluster's visibility (radius: its
+        size, the soft shadows' source size)."""
+        m = np.eye(4)
+        m[:3, 3] = self.centre
+        return Light(f"emission {self.name}", "POINT", m, np.ones(3, np.float32), 1.0,
+                     radius=self.radius)
+
+
+def emissive_materials(scene: Scene) -> list[int]:
+    """Indices of the materials that emit (radiance above 0 in some channel) and that some
+    triangle uses."""
+    used = set(np.unique(scene.material_index).tolist())
+    return [i for i, m in enumerate(scene.materials)
+            if i in used and np.isfinite(m.emission).all() and float(np.max(m.emission)) > 0]
+
+
+def clusters(scene: Scene, diagonal: float) -> list[Cluster]:
+    """The scene's emitters grouped per material and object, the widest split at the median
+    of its triangles' centroids along its longest extent while wider than SPLIT_SHARE x
+    ``diagonal`` (the LPV box's) and fewer than MAX_CLUSTERS."""
+    groups = []
+    obj = scene.object_index if scene.object_index is not None else np.zeros(
+        scene.triangle_count, np.int32)
+    for mi in emissive_materials(scene):
+        tri = np.nonzero(scene.material_index == mi)[0]
+        for o in np.unique(obj[tri]):
+            groups.append((mi, int(o), tri[obj[tri] == o]))
+
+    def extent(g):
+        c = scene.positions[g[2]].reshape(-1, 3)
+        return float(np.max(c.max(0) - c.min(0)))
+
+    while len(groups) < MAX_CLUSTERS:
+        widest = max(range(len(groups)), key=lambda i: extent(groups[i]), default=None)
+        if widest is None or extent(groups[widest]) <= SPLIT_SHARE * diagonal \
+                or groups[widest][2].size < 2:
+            break
+        mi, o, tri = groups.pop(widest)
+        cen = scene.positions[tri].mean(axis=1)
+        axis = int(np.argmax(cen.max(0) - cen.min(0)))
+        order = tri[np.argsort(cen[:, axis], kind="stable")]
+        half = order.size // 2
+        groups += [(mi, o, np.sort(order[:half])), (mi, o, np.sort(order[half:]))]
+    out = []
+    for n, (mi, o, tri) in enumerate(groups):
+        corners = scene.positions[tri].astype(np.float64)
+        area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0],
+                                             corners[:, 2] - corners[:, 0]), axis=1)
+        centre = (corners.mean(axis=1) * area[:, None]).sum(0) / max(area.sum(), 1e-300)
+        radius = float(np.max(np.linalg.norm(corners.reshape(-1, 3) - centre, axis=1)))
+        owner = (scene.object_names[o] if 0 <= o < len(scene.object_names) else "")
+        name = f"'{scene.materials[mi].name}'" + (f" on '{owner}'" if owner else "") + \
+            f" #{n}"
+        out.append(Cluster(name, mi, tri, corners,
+                           np.asarray(scene.materials[mi].emission, np.float64), centre, radius))
+    return out
+
+
+def triangle_irradiance(corners: np.ndarray, positions: np.ndarray,
+                        normals: np.ndarray) -> np.ndarray:
+    """(M,) irradiance at receivers (M, 3) with unit normals from unit-radiance triangles
+    (T, 3, 3), summed: E = 1/2 |sum_edges theta_e n.(a x b)/|a x b||, Lambert's contour
+    integral over each triangle clipped to the receiver's upper half-space (the clipped
+    polygon's edge along the horizon included)."""
+    p = np.asarray(positions, np.float64)
+    n = np.asarray(normals, np.float64)
+    total = np.zeros(p.shape[0])
+    for tri in np.asarray(corners, np.float64).reshape(-1, 3, 3):
+        v = [tri[i][None, :] - p for i in range(3)]  # vertices relative to the receivers
+        # above the horizon by more than rounding: a receiver in the triangle's own plane (the
+        # emitter itself, a coplanar ceiling) gets nothing from it
+        h = [np.einsum("ij,ij->i", vi, n) - 1e-9 * np.linalg.norm(vi, axis=1) for vi in v]
+        acc = np.zeros(p.shape[0])
+        x_out = np.zeros_like(p)
+        x_in = np.zeros_like(p)
+        cut = np.zeros(p.shape[0], bool)
+        for i in range(3):
+            a, b, ha, hb = v[i], v[(i + 1) % 3], h[i], h[(i + 1) % 3]
+            up_a, up_b = ha > 0, hb > 0
+            t = (ha / np.where(ha != hb, ha - hb, 1.0))[:, None]
+            x = a + t * (b - a)  # where the edge crosses the horizon
+            s = np.where((up_a | ~up_b)[:, None], a, x)
+            e = np.where((up_b | ~up_a)[:, None], b, x)
+            acc += np.where(up_a | up_b, _edge(s, e, n), 0.0)
+            leaving, entering = up_a & ~up_b, ~up_a & up_b
+            x_out = np.where(leaving[:, None], x, x_out)
+            x_in = np.where(entering[:, None], x, x_in)
+            cut |= leaving
+        acc += np.where(cut, _edge(x_out, x_in, n), 0.0)
+        total += 0.5 * np.abs(acc)
+    return total
+
+
+def _edge(a: np.ndarray, b: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """theta n.(a x b)/|a x b| of the edge a -> b seen from the origin (0 where degenerate)."""
+    c = np.cross(a, b)
+    length = np.linalg.norm(c, axis=1)
+    theta = np.arctan2(length, np.einsum("ij,ij->i", a, b))
+    return np.where(length > 0, theta * np.einsum("ij,ij->i", c, n)
+                    / np.where(length > 0, length, 1.0), 0.0)
+
+
+def irradiance(cluster: Cluster, shadow, positions: np.ndarray,
+               normals: np.ndarray) -> np.ndarray:
+    """(M, 3) W/m^2 from ``cluster`` at receivers: contour irradiance x radiance x the
+    visibility of its centre in ``shadow`` (a direct.ShadowMap, None: unoccluded)."""
+    from .render import direct
+
+    e = triangle_irradiance(cluster.corners, positions, normals)
+    if shadow is not None:
+        sel = np.nonzero(e > 0)[0]
+        if sel.size:
+            e[sel] *= direct.visibility(shadow, np.asarray(positions, np.float64)[sel],
+                                        np.asarray(normals, np.float64)[sel])
+    return e[:, None] * cluster.radiance

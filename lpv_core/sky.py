@@ -1,0 +1,130 @@
+"""The World as a light source: DIRECTIONS directions over the sphere, each carrying the World's
+radiance averaged over its solid-angle cell, sky visibility from one orthographic shadow map
+per direction, and the World seen along the camera's rays (the background).
+
+Irradiance at a receiver with normal n: E = pi sum_k w_k L_k max(0, n.w_k) V_k / sum_k w_k
+max(0, n.w_k); the denominator makes a uniform unoccluded World give exactly pi L on every
+normal (the quadrature's own cosine error cancels). See docs/algorithm.md, "The World".
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .propagation.quadrature import quadrature_directions
+from .scene.model import Light
+from .scene.world import World
+
+# The DOM transport's own count: 64 cells of 4 pi / 64 sr (~29 deg wide); the banding it leaves
+# in contact shadows is measured in tests/test_sources.py and docs/decisions.md.
+DIRECTIONS = 64
+SHADOW_RESOLUTION = 256  # texels per side of each direction's map (64 maps: 16 MiB)
+MAX_MAP_SIDE = 512  # the map is box-averaged down to at most this many columns first
+MIN_MAP_SIDE = 64  # and sampled at least this finely (a 1x1 uniform World included)
+
+
+def lit(world: World | None) -> str:
+    """Why ``world`` sends no light (empty string: it does)."""
+    if world is None:
+        return "no World"
+    if not world.enabled:
+        return "World light is switched off"
+    r = np.asarray(world.radiance)
+    if r.size == 0 or not np.isfinite(r).all() or float(r.max(initial=0.0)) <= 0.0:
+        return "World is black"
+    return ""
+
+
+def map_directions(height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """Unit directions (H, W, 3) of an equirectangular map's texel centres (rows bottom-first,
+    World's convention) and their solid angles (H, W)."""
+    v = (np.arange(height) + 0.5) / height
+    u = (np.arange(width) + 0.5) / width
+    elev = (v - 0.5) * np.pi
+    phi = (0.5 - u) * 2.0 * np.pi  # atan2(y, x)
+    ce = np.cos(elev)[:, None]
+    dirs = np.stack(np.broadcast_arrays(ce * np.cos(phi), ce * np.sin(phi),
+                                        np.sin(elev)[:, None]), axis=-1)
+    edges = np.sin((np.arange(height + 1) / height - 0.5) * np.pi)  # rows' z bounds
+    solid = (2.0 * np.pi / width) * np.diff(edges)[:, None]
+    return dirs, np.ascontiguousarray(np.broadcast_to(solid, (height, width)))
+
+
+def cells(world: World, k: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(directions (K, 3), solid angles w_k (K,), radiance (K, 3)): the World's map averaged
+    over each direction's cell (the map texels nearest to it), weighted by texel solid angle."""
+    r = np.asarray(world.radiance, np.float64).reshape(
+        np.shape(world.radiance)[0], np.shape(world.radiance)[1], 3)
+    h, w = r.shape[:2]
+    step = max(1, w // MAX_MAP_SIDE)
+    if step > 1:  # box average (texels of a row have equal solid angles; rows are weighted)
+        h2, w2 = h // step, w // step
+        _, sa = map_directions(h, w)
+        r = r[:h2 * step, :w2 * step] * sa[:h2 * step, :w2 * step, None]
+        r = r.reshape(h2, step, w2, step, 3).sum((1, 3))
+        r /= sa[:h2 * step, :w2 * step].reshape(h2, step, w2, step).sum((1, 3))[..., None]
+        h, w = h2, w2
+    rep = max(1, -(-MIN_MAP_SIDE // w))  # nearest-texel upsampling of a small map
+    r = np.repeat(np.repeat(r, rep, axis=0), rep, axis=1)
+    dirs, solid = map_directions(*r.shape[:2])
+    k = k or DIRECTIONS
+    ks = quadrature_directions(k)
+    near = np.argmax(dirs.reshape(-1, 3) @ ks.T, axis=1)
+    sa = solid.reshape(-1)
+    weight = np.bincount(near, sa, minlength=k)
+    rad = np.stack([np.bincount(near, sa * r.reshape(-1, 3)[:, c], minlength=k)
+                    for c in range(3)], axis=1) / np.maximum(weight, 1e-300)[:, None]
+    return ks, weight, rad
+
+
+def lookup(world: World, directions: np.ndarray) -> np.ndarray:
+    """The World's radiance (N, 3) along unit ``directions`` (N, 3), bilinear in the map
+    (wrapping around in longitude): what the camera sees where it sees no surface."""
+    r = np.asarray(world.radiance, np.float32)
+    h, w = r.shape[:2]
+    d = np.asarray(directions, np.float64)
+    u = 0.5 - np.arctan2(d[:, 1], d[:, 0]) / (2.0 * np.pi)
+    v = 0.5 + np.arcsin(np.clip(d[:, 2], -1.0, 1.0)) / np.pi
+    fx, fy = u * w - 0.5, np.clip(v * h - 0.5, 0.0, h - 1.0)
+    x0, y0 = np.floor(fx).astype(np.int64), np.floor(fy).astype(np.int64)
+    tx, ty = (fx - x0)[:, None], (fy - y0)[:, None]
+    y1 = np.minimum(y0 + 1, h - 1)
+    x0, x1 = x0 % w, (x0 + 1) % w
+    return ((r[y0, x0] * (1 - tx) + r[y0, x1] * tx) * (1 - ty)
+            + (r[y1, x0] * (1 - tx) + r[y1, x1] * tx) * ty)
+
+
+def suns(directions: np.ndarray) -> list[Light]:
+    """One unit SUN light per direction, shining along -w_k: render_shadow_map and the direct
+    kernel give it max(0, n.w_k) V_k (hard: softening each over its cell's cone, PCSS, measured
+    worse and 7x slower, docs/decisions.md)."""
+    out = []
+    for i, d in enumerate(directions):
+        z = np.asarray(d, np.float64)
+        x = np.cross([0.0, 0.0, 1.0] if abs(z[2]) < 0.9 else [0.0, 1.0, 0.0], z)
+        x /= np.linalg.norm(x)
+        m = np.eye(4)
+        m[:3, 0], m[:3, 1], m[:3, 2] = x, np.cross(z, x), z
+        out.append(Light(f"World direction {i}", "SUN", m, np.ones(3, np.float32), 1.0))
+    return out
+
+
+def irradiance(directions: np.ndarray, weights: np.ndarray, radiance: np.ndarray, maps: list,
+               positions: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """World irradiance (M, 3) W/m^2 at receivers: the normalised shadowed sum (module doc);
+    ``maps`` the shadow maps of ``suns`` (None: unoccluded)."""
+    from .render import direct
+
+    pos = np.asarray(positions, np.float64)
+    nrm = np.asarray(normals, np.float64)
+    cos = np.maximum(nrm @ np.asarray(directions, np.float64).T, 0.0)  # (M, K)
+    den = cos @ weights
+    e = np.zeros((pos.shape[0], 3))
+    for k, shadow in enumerate(maps):
+        if not radiance[k].any():
+            continue
+        # the direct kernel tests visibility only where the cosine is positive
+        vis_cos = cos[:, k] if shadow is None else direct.irradiance(shadow.light, pos, nrm,
+                                                                      shadow)[:, 0]
+        e += np.multiply.outer(weights[k] * vis_cos, radiance[k])
+    return e * (np.pi / np.maximum(den, 1e-300))[:, None]

@@ -1,0 +1,215 @@
+"""Light sources without an RSM, the World (sky.py) and emissive triangles (emitters.py), in an
+update and a render: their shadow maps (cached per geometry and LPV box), their direct light at
+any points (Diffuse Direct), their GI (caster surfels lit by that direct light, x area x GI
+reflectance, injected and propagated like VPLs: Diffuse Indirect), and what the camera sees of
+them (emitting surfaces, the World behind everything: Combined only)."""
+
+from __future__ import annotations
+
+import hashlib
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import emitters, propagation, sky
+from .geometry_volume import surfels
+
+
+@dataclass
+class Source:
+    """A GI source for Engine.update's per-source grids (combine weighs it like a light)."""
+
+    name: str
+    kind: str  # "world" or "emission"
+    gi_intensity: float
+    source_key: tuple  # what its propagated grids depend on besides the scene key
+    material: int = -1  # emission: the material
+    gi_color: None = None
+
+
+def _digest(*arrays) -> str:
+    h = hashlib.blake2b(digest_size=16)
+    for a in arrays:
+        h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()
+
+
+def gi_sources(scene, refl: str, stats) -> list[Source]:
+    """The World and emissive materials that contribute GI; the rest in the stats with why."""
+    out = []
+    world, g = scene.world, scene.settings.intensity
+    why = sky.lit(world)
+    if not why and world.gi_intensity == 0:
+        why = "its GI intensity is 0 (direct light only)"
+    if not why and g == 0:
+        why = "global GI intensity is 0"
+    if why:
+        stats.skip("sources", "World", why)
+    else:
+        key = ("world", world.digest or _digest(world.radiance), sky.DIRECTIONS, refl)
+        out.append(Source(f"World '{world.name}'", "world", float(world.gi_intensity), key))
+    mats = emitters.emissive_materials(scene)
+    if not mats:
+        stats.skip("sources", "emission", "no material emits")
+    for mi in mats:
+        m = scene.materials[mi]
+        label = f"emission '{m.name}'"
+        if m.emission_gi_intensity == 0 or g == 0:
+            stats.skip("sources", label, "GI intensity is 0 (direct light only)")
+            continue
+        key = ("emission", mi, np.asarray(m.emission, np.float64).tobytes(), refl)
+        out.append(Source(label, "emission", float(m.emission_gi_intensity), key, mi))
+    return out
+
+
+class SourceMaps:
+    """Shadow maps of the World's directions and of the emitter clusters, for one geometry and
+    LPV box (Engine.sources_maps)."""
+
+    def __init__(self):
+        self.key = None
+        self.world = None  # (world digest, directions, weights, radiance)
+        self.world_maps: list = []
+        self.clusters = None  # (emission digest, [(Cluster, ShadowMap)])
+
+    def reset(self, key) -> None:
+        if key != self.key:
+            self.key, self.world_maps, self.clusters = key, [], None
+
+
+def maps(engine, scene, bounds, stats) -> SourceMaps:
+    """engine's SourceMaps made current for ``scene`` in ``bounds``: the World's directions
+    and maps and the clusters' cube maps (the scene without emitters: they do not shadow
+    themselves) rendered when missing; stats.info["sources"] names what each approximates."""
+    from .render import direct
+
+    sm = engine.source_maps
+    lo, hi = (np.asarray(b, np.float64) for b in bounds)
+    b = engine._bounds
+    sm.reset((b.geometry if b is not None else _digest(scene.positions), lo.tobytes(), hi.tobytes()))
+    info = stats.info.setdefault("sources", {})
+    t0 = time.perf_counter()
+    world = scene.world
+    if not sky.lit(world):
+        digest = world.digest or _digest(world.radiance)
+        if sm.world is None or sm.world[0] != digest:
+            sm.world = (digest, *sky.cells(world))
+        if not sm.world_maps:  # windows on the LPV box, depth over all the geometry (what
+            # stands outside the box, a closed space's walls, shades it from the sky too)
+            whole = scene.bounds()
+            sm.world_maps = [direct.render_shadow_map(engine.raster, s, whole,
+                                                      sky.SHADOW_RESOLUTION, (lo, hi))
+                             for s in sky.suns(sm.world[1])]
+        info[f"World '{world.name}'"] = (f"{sky.DIRECTIONS} directions of {4 * np.pi / sky.DIRECTIONS:.3f} sr, "
+                       "radiance averaged over each; sky visibility from "
+                       f"{sky.SHADOW_RESOLUTION}^2 orthographic shadow maps")
+    mats = emitters.emissive_materials(scene)
+    if mats:
+        table = np.array([scene.materials[i].emission for i in mats], np.float64)
+        digest = _digest(table, np.array(mats), scene.material_index)
+        if sm.clusters is None or sm.clusters[0] != digest:
+            found = emitters.clusters(scene, float(np.linalg.norm(hi - lo)))
+            keep = ~np.isin(scene.material_index, mats)
+            raster, origin = engine.raster, 0.5 * (lo + hi)
+            raster.upload(scene.positions[keep], scene.normals[keep],
+                          scene.albedo_per_triangle()[keep],
+                          scene.reflectance_per_triangle()[keep], origin=origin)
+            made = [(c, direct.render_shadow_map(raster, c.light(), (lo, hi),
+                                                 emitters.SHADOW_RESOLUTION)) for c in found]
+            engine.upload(scene, stats)  # the whole scene back for the other passes
+            sm.clusters = (digest, made)
+        for c, _ in sm.clusters[1]:
+            info[f"emission {c.name}"] = (
+                f"{c.triangles.size} triangles, exact unoccluded form factors; visibility "
+                f"from the cluster's centre ({emitters.SHADOW_RESOLUTION}^2 cube map, "
+                f"{c.radius:.3g} m source)")
+    stats.add_ms("source_maps", time.perf_counter() - t0)
+    return sm
+
+
+def direct(engine, scene, bounds, positions, normals, stats, material: int | None = None,
+           world: bool = True) -> np.ndarray | None:
+    """Direct irradiance (M, 3) W/m^2 of the World (``world``) and the emitters (of
+    ``material`` only, when given) at receivers; None when none of them sends light."""
+    if sky.lit(scene.world) and not emitters.emissive_materials(scene):
+        return None
+    sm = maps(engine, scene, bounds, stats)
+    e = None
+    if world and sm.world_maps:
+        e = sky.irradiance(*sm.world[1:], sm.world_maps, positions, normals)
+    for c, shadow in (sm.clusters[1] if sm.clusters else []):
+        if material is None or c.material == material:
+            part = emitters.irradiance(c, shadow, positions, normals)
+            e = part if e is None else e + part
+    return e
+
+
+def propagate(engine, scene, src: Source, run, bounds, stats) -> list:
+    """A source's propagated grids (one per cascade, unweighted): caster surfels (two-sided, at
+    half the finest cell, as Engine._more_bounces) lit by its direct light, their flux E x area
+    x GI reflectance injected and propagated through ``run`` (Engine._source caches them)."""
+    chain = run.chain
+    maps(engine, scene, bounds, stats)  # timed on its own (source_maps)
+    t0 = time.perf_counter()
+    cell = chain[0].cell_size
+    pos, nrm, area, tri = surfels(scene.positions, 0.5 * cell, with_index=True)
+    refl = scene.reflectance_per_triangle()[tri].astype(np.float64)
+    pos2, nrm2 = np.concatenate([pos, pos]), np.concatenate([nrm, -nrm])
+    e = direct(engine, scene, bounds, pos2, nrm2, stats,
+               material=src.material if src.kind == "emission" else -1,
+               world=src.kind == "world")
+    flux = e * np.concatenate([area, area])[:, None] * np.concatenate([refl, refl])
+    # Light leaving the LPV box outward meets nothing (the box bounds the geometry, or the
+    # closed space around the camera): the side a surfel lights must face into the box (a
+    # flat box's thin axis aside); a closed room's outer sides are left out.
+    lo, hi = (np.asarray(b, np.float64) for b in bounds)
+    tol = 1e-6 * max(float(np.max(hi - lo)), 1e-30)
+    ahead = pos2 + nrm2 * tol
+    flat = (hi - lo) <= 2 * tol
+    inside = np.all(flat | ((ahead >= lo) & (ahead <= hi)), axis=1)
+    keep = inside & (flux.max(axis=1) > 0)
+    stats.add_ms("sources", time.perf_counter() - t0)
+    stats.info.setdefault("source_flux", {})[src.name] = float(flux[keep].sum())
+    if not keep.any():
+        seen = bool((inside & (e.max(axis=1) > 0)).any())
+        stats.skip("sources", f"GI of {src.name}",
+                   "no caster it lights inside the LPV" if seen else
+                   "no surface inside the LPV sees it (every surfel's visibility is 0)")
+        return [g.zeros(propagation.coefficients(scene.settings.angular)) for g in chain]
+    totals = run.propagate(pos2[keep], nrm2[keep], flux[keep])
+    if scene.settings.bounces > 1:
+        totals = engine._more_bounces(scene, run, totals)
+    return totals
+
+
+def camera_light(engine, scene, projection, mask: np.ndarray, combined: np.ndarray) -> None:
+    """Add what the camera sees of the sources to ``combined`` (H, W, 4): each emitting
+    surface's radiance where it is seen (its triangle per pixel, the RSM pass's index) and the
+    World along the view ray where no surface is (bilinear in its map)."""
+    h, w = mask.shape
+    mats = emitters.emissive_materials(scene)
+    if mats and mask.any():
+        raster = engine.raster
+        fbo = raster._fbo(w, h, 2)
+        raster._draw(raster.rsm_program, raster._rsm_vao, fbo, scene.camera.view, projection,
+                     False)
+        pos, nrm = raster._targets(fbo, (0, 1), w, h)
+        tri = raster.triangles(pos[mask], nrm[mask])
+        table = np.array([m.emission for m in scene.materials], np.float32)
+        ok = (tri >= 0) & (tri < scene.triangle_count)
+        glow = np.zeros((tri.size, 3), np.float32)
+        glow[ok] = table[scene.material_index[tri[ok]]]
+        combined[..., :3][mask] += glow
+    if not sky.lit(scene.world) and not mask.all():
+        ys, xs = np.nonzero(~mask)
+        ndc = np.stack([(xs + 0.5) / w * 2 - 1, 1 - (ys + 0.5) / h * 2,
+                        np.ones(xs.size), np.ones(xs.size)], axis=1)
+        inv = np.linalg.inv(np.asarray(projection, np.float64) @ np.asarray(scene.camera.view))
+        far = ndc @ inv.T
+        near_ndc = ndc.copy()
+        near_ndc[:, 2] = -1.0
+        near = near_ndc @ inv.T
+        d = far[:, :3] / far[:, 3:] - near[:, :3] / near[:, 3:]
+        d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-300)
+        combined[ys, xs, :3] += sky.lookup(scene.world, d)
