@@ -63,6 +63,13 @@ def test_uniform_world_over_an_open_plane_is_diffuse_direct_L():
     np.testing.assert_allclose(passes["Diffuse Direct"][covered], L, rtol=0.02)
     np.testing.assert_allclose(passes["Combined"][sky_only][:, :3], L, rtol=1e-6)
     assert passes["Diffuse Direct"][sky_only].max() == 0
+    # unoccluded, every normal gets exactly pi L (the normalisation; the bare 64-direction
+    # cosine sum is off by up to a few per cent on some normals)
+    n = np.random.default_rng(1).normal(size=(500, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    dirs, weights, radiance = sky.cells(uniform())
+    e = sky.irradiance(dirs, weights, radiance, [None] * len(dirs), np.zeros((500, 3)), n)
+    np.testing.assert_allclose(e, np.pi * L, rtol=1e-9)
 
 
 def sky_fraction(x, h):
@@ -103,6 +110,18 @@ def panel_room(h=1.5, size=1.0):
                                         emission=np.full(3, E, np.float32))]
     return make_scene(np.concatenate([floor, panel]), material_index=[0, 0, 1, 1],
                       materials=mats, lights=[], camera=camera([0, -6, 4], [0, 0, 0]))
+
+
+def test_contour_form_factor_clips_to_the_receivers_horizon():
+    """A horizontal point 1 m from a vertical emitting wall 2 x 10^4 m wide and high (half below
+    the floor's plane): the wall above the horizon gives exactly half the hemisphere, E = pi L /
+    2 (the clipped polygon's edge along the horizon included); a point facing it, pi L."""
+    from lpv_core import emitters
+
+    w = 1e4
+    wall = quad([1, -w, -w], [1, w, -w], [1, w, w], [1, -w, w])
+    e = emitters.triangle_irradiance(wall, np.zeros((2, 3)), np.array([[0, 0, 1.0], [1, 0, 0]]))
+    np.testing.assert_allclose(e, [np.pi / 2, np.pi], rtol=1e-3)
 
 
 def test_emissive_square_lights_a_parallel_plane_with_the_rectangle_form_factor():
