@@ -461,6 +461,27 @@ def test_non_finite_node_values_are_counted_and_repaired(empty_file):
     m = s.materials[0]
     assert np.isfinite(m.albedo).all() and np.isfinite(m.emission).all()
     assert s.dropped["materials_with_invalid_values_defaulted"] == 1
+    # A float image with a NaN and a negative texel, a colour attribute with a NaN corner.
+    img = bpy.data.images.new("bad texels", 2, 1, float_buffer=True)
+    img.pixels.foreach_set([np.nan, 0.5, 0.5, 1.0, -1.0, 0.25, 0.5, 1.0])
+    tex_mat, nt, out = new_material("bad image")
+    p = principled(nt)
+    t = nt.nodes.new("ShaderNodeTexImage")
+    t.image = img
+    nt.links.new(t.outputs["Color"], p.inputs["Base Color"])
+    to_surface(nt, out, p)
+    quad("t", tex_mat).data.uv_layers.new(name="UVMap")
+    vc, nt, out = new_material("bad colours")
+    attribute("Col")(nt, out)
+    col = quad("c", vc).data.color_attributes.new("Col", "FLOAT_COLOR", "CORNER")
+    col.data.foreach_set("color", [np.nan, 0, 0, 1] + [0.5, 0.5, 0.5, 1] * 3)
+    s = run()
+    tex = next(m for m in s.materials if m.name == "bad image").texture
+    assert np.array_equal(tex.pixels.reshape(2, 3), [[0, 0.5, 0.5], [0, 0.25, 0.5]])
+    assert s.dropped["texels_nonfinite_or_negative_defaulted"] == 2
+    assert s.dropped["corner_colors_nonfinite_or_negative_defaulted"] == 1
+    assert np.isfinite(s.corner_colors).all() and (s.corner_colors >= 0).all()
+    assert any("'bad texels': 2 non-finite or negative texels" in a for a in s.approximated)
 
 
 def test_texture_cache_rereads_only_the_changed_image(empty_file, tmp_path):

@@ -126,6 +126,9 @@ def extract_scene(
             **geo.flags(obj_index), **geo.corner_arrays(), world=world,
         )
     result.approximated.extend(geo.approximated + world_notes)
+    for key, n in geo.defaulted.items():
+        if n:
+            result.dropped[f"{key}_nonfinite_or_negative_defaulted"] = n
     for key, value in dropped.items():
         result.dropped[key] = result.dropped.get(key, 0) + value
     # Light sources the LPV does not model: counted, so stats and the CLI can say so.
@@ -167,6 +170,7 @@ class _GeometryCollector:
         self._material_ids: dict = {}
         self.infos: list = []  # materials.MaterialInfo per material
         self.approximated: list[str] = []
+        self.defaulted = {"texels": 0, "corner_colors": 0}  # non-finite or negative, set to 0
         self.object_names: list[str] = []
         self._object_ids: dict[str, int] = {}
         self.object_flags: list[tuple[bool, bool, bool]] = []  # caster, occluder, receiver
@@ -229,6 +233,7 @@ class _GeometryCollector:
                     cols[sel] = 0.0
                 else:
                     cols[sel] = col[sel]
+        self.defaulted["corner_colors"] += layers.get("defaulted", 0) if colors else 0
         return uvs, cols
 
     def _note(self, line: str) -> None:
@@ -272,6 +277,7 @@ class _GeometryCollector:
                 self.emissive.append(mat.name)
             for line in info.notes:
                 self._note(line)
+            self.defaulted["texels"] += info.defaulted_texels
             mid = self._material_ids[key] = len(self.materials)
             self.materials.append(info.material)
             self.infos.append(info)
@@ -399,7 +405,10 @@ def corner_layers(mesh, loops: np.ndarray, tri_verts: np.ndarray, uv_maps, color
         col = _read(attr.data, "color", 4 * n, np.float32).reshape(-1, 4)[:, :3]
         index = loops if attr.domain == "CORNER" else tri_verts
         with np.errstate(invalid="ignore"):
-            col = np.where(np.isfinite(col), np.maximum(col, 0.0), 0.0)
+            bad = ~(np.isfinite(col) & (col >= 0))
+        if bad.any():
+            out["defaulted"] = out.get("defaulted", 0) + int(bad.any(axis=1).sum())
+            col = np.where(bad, 0.0, col)
         out[("color", name)] = np.take(col, index, axis=0)
     return out
 

@@ -72,6 +72,7 @@ DIFFUSE_COLOR = frozenset({  # shaders whose Color input is their Diffuse Color
 
 # Colour spaces whose byte values are used as they are.
 _LINEAR_SPACES = frozenset({"Non-Color", "Linear Rec.709", "Linear CIE-XYZ E", "Raw"})
+_defaulted: dict[str, int] = {}  # image digest -> texels set to 0 (non-finite or negative)
 # image digest -> ((H, W, 3) colour, mean alpha)
 _textures: OrderedDict[str, tuple[np.ndarray, float]] = OrderedDict()
 
@@ -87,6 +88,7 @@ class MaterialInfo:
     uv_transform: np.ndarray | None = None
     color_attribute: str | None = None
     notes: list[str] = field(default_factory=list)
+    defaulted_texels: int = 0  # non-finite or negative texels of its images set to 0
 
 
 @dataclass
@@ -117,6 +119,7 @@ class _Evaluator:
         self.mat = mat
         self.notes: list[str] = []
         self.uv: tuple[str, np.ndarray | None] | None = None
+        self.defaulted = 0
 
     def note(self, text: str) -> None:
         line = f"material '{self.mat.name}': {text}"
@@ -363,6 +366,10 @@ class _Evaluator:
             self.note(f"Image Texture '{node.name}' has no image: black, as Cycles shows it")
             return _const(np.zeros(3))
         digest, rgb, _ = image_pixels(image)
+        if _defaulted.get(digest):
+            self.defaulted += _defaulted[digest]
+            self.note(f"image '{image.name}': {_defaulted[digest]} non-finite or negative "
+                      "texels set to 0")
         if rgb is None:
             path = bpy.path.abspath(image.filepath) if image.filepath else "(no file)"
             line = f"image '{image.name}' is missing ({path}): magenta, as Cycles shows it"
@@ -489,7 +496,8 @@ def material_info(mat) -> MaterialInfo:
         diffuse, emission = ev.shader(surface)
     m = core.scene.Material(mat.name, np.clip(diffuse.const, 0.0, None).astype(np.float32))
     m.emission = np.clip(np.asarray(emission, np.float64), 0.0, None).astype(np.float32)
-    info = MaterialInfo(m, color_attribute=diffuse.attr, notes=ev.notes)
+    info = MaterialInfo(m, color_attribute=diffuse.attr, notes=ev.notes,
+                        defaulted_texels=ev.defaulted)
     if diffuse.pixels is not None:
         node = diffuse.node
         m.texture = core.scene.Texture(
@@ -597,8 +605,9 @@ def image_pixels(image) -> tuple[str, np.ndarray | None, float]:
         with np.errstate(invalid="ignore"):
             bad = ~(np.isfinite(rgb) & (rgb >= 0))
         if bad.any():
-            print(f"LPV GI: image '{image.name}': {int(bad.any(axis=2).sum())} non-finite or "
-                  "negative pixels set to 0", file=sys.stderr)
+            _defaulted[digest] = int(bad.any(axis=2).sum())
+            print(f"LPV GI: image '{image.name}': {_defaulted[digest]} non-finite or "
+                  "negative texels set to 0", file=sys.stderr)
             rgb[bad] = 0.0
     rgb = resample_to_budget(rgb, TEXTURE_BUDGET)
     entry = np.ascontiguousarray(rgb, np.float32), mean_alpha
