@@ -76,6 +76,25 @@ def _material_json(material: Material, folder: str) -> dict:
     return out
 
 
+TEXTURE_FILES_BYTES = 4 * textures.BUDGET_BYTES  # the texture folder's size before pruning
+
+
+def _prune_textures(folder: str, used: set) -> None:
+    """Remove the oldest texture files this scene does not use while the folder holds more
+    than TEXTURE_FILES_BYTES (a texture painted on writes a file per change)."""
+    try:
+        entries = [e for e in os.scandir(folder) if e.name.endswith(".npy")]
+    except FileNotFoundError:
+        return
+    total = sum(e.stat().st_size for e in entries)
+    for e in sorted(entries, key=lambda e: e.stat().st_mtime):
+        if total <= TEXTURE_FILES_BYTES:
+            break
+        if e.name[:-4] not in used:
+            total -= e.stat().st_size
+            os.unlink(e.path)
+
+
 def save_scene(path: str, scene: Scene) -> None:
     """Write a core Scene (everything the engine and the deferred renderer use) to ``path``;
     texture pixels to TEXTURE_FOLDER beside it, once per digest (_material_json)."""
@@ -99,6 +118,9 @@ def save_scene(path: str, scene: Scene) -> None:
         "camera": None if scene.camera is None else _as_json(scene.camera),
     }
     arrays["meta"] = np.array(json.dumps(meta))
+    used = {m["texture"]["digest"] for m in meta["materials"] if m.get("texture")}
+    if used:
+        _prune_textures(folder, used)
     tmp = path + ".tmp.npz"
     np.savez(tmp, **arrays)
     os.replace(tmp, path)

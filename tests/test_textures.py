@@ -287,14 +287,29 @@ def test_worker_round_trip_keeps_textures_and_writes_pixels_once(tmp_path):
     np.testing.assert_array_equal(tex.pixels, CHECKER.pixels)
     np.testing.assert_array_equal(back.uvs, scene.uvs)
     np.testing.assert_array_equal(back.corner_colors, scene.corner_colors)
+    np.save(file, np.zeros((1, 1, 3), np.float32))  # a marker in place of the pixels
     worker.save_scene(path, scene)  # the same digest: the pixels file is not rewritten
-    again = file.stat()
-    assert (again.st_mtime_ns, again.st_ino) == (first.st_mtime_ns, first.st_ino)
+    assert file.stat().st_ino == first.st_ino
+    assert worker.load_scene(path).materials[0].texture.pixels.shape == (1, 1, 3)
+    np.save(file, CHECKER.pixels)
+    for k in range(3):  # a texture painted on: a file per change, the old ones pruned
+        scene.materials[0].texture = Texture("paint", np.full((64, 64, 3), k, np.float32),
+                                             digest=f"paint-{k}")
+        worker.save_scene(path, scene)
+    assert worker.load_scene(path).materials[0].texture.digest == "paint-2"
+    old = worker.TEXTURE_FILES_BYTES
+    try:
+        worker.TEXTURE_FILES_BYTES = 2 * 64 * 64 * 12 + 1000  # room for two of them
+        worker.save_scene(path, scene)
+    finally:
+        worker.TEXTURE_FILES_BYTES = old
+    left = sorted(f.name for f in (tmp_path / worker.TEXTURE_FOLDER).iterdir())
+    assert "paint-2.npy" in left and len(left) == 2  # the oldest unused ones went first
     held: dict = {}
     one = worker.load_scene(path, held)
     two = worker.load_scene(path, held)  # the worker keeps the textures it holds
     assert two.materials[0].texture.pixels is one.materials[0].texture.pixels
-    assert list(held) == ["checker-1"]
+    assert list(held) == ["paint-2"]
 
 
 # ---------------------------------------------------------------------------- Cycles
