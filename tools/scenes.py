@@ -36,9 +36,13 @@ __all__ = [
     "build",
     "city",
     "cornell_box",
+    "emission_material",
     "library",
+    "panel_room",
     "point_room",
     "save_scene",
+    "sky_room",
+    "sky_yard",
     "soft_room",
     "sun_yard",
     "sunlit_room",
@@ -313,6 +317,151 @@ def library(resolution: Sequence[int] = (128, 128), *, shader: str = "DIFFUSE",
     return scene_facts(scene, lamps)
 
 
+def _world(scene: bpy.types.Scene, name: str) -> tuple[bpy.types.World, bpy.types.Node]:
+    """A new World on ``scene`` with its Background node (Blender's default tree)."""
+    world = bpy.data.worlds.new(name)
+    if world.node_tree is None:  # pragma: no cover - Blender < 5 needs nodes switched on
+        world.use_nodes = True
+    scene.world = world
+    bg = next(n for n in world.node_tree.nodes if n.bl_idname == "ShaderNodeBackground")
+    return world, bg
+
+
+def _roof_with_hole(lo: Sequence[float], hi: Sequence[float],
+                    hole: tuple[float, float, float, float]) -> tuple[list, list]:
+    """A roof slab from ``lo`` to ``hi`` with an open rectangle (x0, x1, y0, y1) in it."""
+    (x0, y0, z0), (x1, y1, z1) = lo, hi
+    hx0, hx1, hy0, hy1 = hole
+    return _merge(
+        box_geometry((x0, y0, z0), (x1, hy0, z1)), box_geometry((x0, hy1, z0), (x1, y1, z1)),
+        box_geometry((x0, hy0, z0), (hx0, hy1, z1)), box_geometry((hx1, hy0, z0), (x1, hy1, z1)),
+    )
+
+
+def sky_room(resolution: Sequence[int] = (128, 128), *, shader: str = "DIFFUSE",
+             new_file: bool = True) -> dict:
+    """A closed 5 x 4 x 2.8 m room (inside x in [-2.5, 2.5], y in [-2, 2], z in [0, 2.8]) of
+    solid 0.2 m slabs with a 2.0 x 1.2 m skylight in the roof, lit only by a uniform pale
+    blue World (radiance (0.6, 0.7, 0.9) x 2) through it; a table, sofa and cabinet; no lamp.
+    Camera inside the -x/-y corner. Returns the scene's facts."""
+    scene = new_scene("sky_room", resolution, new_file)
+    _, bg = _world(scene, "Sky")
+    bg.inputs["Color"].default_value = (0.6, 0.7, 0.9, 1.0)
+    bg.inputs["Strength"].default_value = 2.0
+    wall = diffuse_material("Wall", (0.78, 0.76, 0.72), shader)
+    floor_mat = diffuse_material("Floor", (0.50, 0.36, 0.24), shader)
+    rug = diffuse_material("Rug", (0.15, 0.45, 0.25), shader)
+    wood = diffuse_material("Wood", (0.55, 0.40, 0.25), shader)
+    fabric = diffuse_material("Fabric", (0.65, 0.18, 0.12), shader)
+    t = 0.2
+    x0, x1, y0, y1, z1 = -2.5, 2.5, -2.0, 2.0, 2.8
+    add_mesh_object(scene, "FloorSlab", box_geometry((x0 - t, y0 - t, -t), (x1 + t, y1 + t, 0.0)),
+                    floor_mat)
+    add_mesh_object(scene, "Roof", _roof_with_hole((x0 - t, y0 - t, z1), (x1 + t, y1 + t, z1 + t),
+                                                   (-0.6, 1.4, -0.5, 0.7)), wall)
+    walls = _merge(
+        box_geometry((x0 - t, y0, 0.0), (x0, y1, z1)), box_geometry((x1, y0, 0.0), (x1 + t, y1, z1)),
+        box_geometry((x0 - t, y0 - t, 0.0), (x1 + t, y0, z1)),
+        box_geometry((x0 - t, y1, 0.0), (x1 + t, y1 + t, z1)),
+    )
+    add_mesh_object(scene, "Walls", walls, wall)
+    add_mesh_object(scene, "Rug", box_geometry((-0.8, -0.9, 0.0), (1.6, 1.1, 0.02)), rug)
+    legs = [box_geometry((x - 0.03, y - 0.03, 0.0), (x + 0.03, y + 0.03, 0.72))
+            for x in (-0.55, 0.55) for y in (-0.35, 0.35)]
+    add_mesh_object(scene, "Table", _merge(box_geometry((-0.6, -0.4, 0.72), (0.6, 0.4, 0.77)), *legs),
+                    wood, location=(0.6, 0.1, 0.0), rotation_z_deg=12.0)
+    sofa = _merge(box_geometry((-1.0, -0.45, 0.0), (1.0, 0.45, 0.45)),
+                  box_geometry((-1.0, 0.25, 0.45), (1.0, 0.45, 0.95)))
+    add_mesh_object(scene, "Sofa", sofa, fabric, location=(0.0, 1.5, 0.0))
+    add_mesh_object(scene, "Cabinet", box_geometry((-0.25, -0.6, 0.0), (0.25, 0.6, 1.1)), wood,
+                    location=(2.2, -0.6, 0.0))
+    add_camera(scene, (-2.25, -1.75, 1.5), (0.6, 0.6, 0.9), lens_mm=16.0)
+    return scene_facts(scene, [])
+
+
+def sky_yard(resolution: Sequence[int] = (128, 128), *, shader: str = "DIFFUSE",
+             new_file: bool = True) -> dict:
+    """sun_yard's ground and five boxes under a Sky Texture of Blender's default sky type
+    (its sun disc on, 35 deg up, rotated 150 deg) at Background strength 0.05, no lamp;
+    camera outside looking down at the group. Returns the scene's facts."""
+    scene = new_scene("sky_yard", resolution, new_file)
+    world, bg = _world(scene, "SkyTexture")
+    sky = world.node_tree.nodes.new("ShaderNodeTexSky")  # default sky type and settings
+    sky.sun_elevation = math.radians(35.0)
+    sky.sun_rotation = math.radians(150.0)
+    world.node_tree.links.new(sky.outputs["Color"], bg.inputs["Color"])
+    bg.inputs["Strength"].default_value = 0.05
+    ground = diffuse_material("Ground", (0.5, 0.5, 0.5), shader)
+    plane = ([(-20.0, -20.0, 0.0), (20.0, -20.0, 0.0), (20.0, 20.0, 0.0), (-20.0, 20.0, 0.0)],
+             [(0, 1, 2, 3)])
+    add_mesh_object(scene, "Ground", plane, ground)
+    boxes = [
+        ("RedBox", (2.0, 2.0, 2.0), (0.0, 0.0), 20.0, (0.7, 0.08, 0.06)),
+        ("WhiteTower", (1.0, 1.0, 3.0), (2.6, 1.6), 0.0, (0.8, 0.8, 0.8)),
+        ("GreenWall", (4.0, 0.3, 1.5), (-1.8, 2.6), -10.0, (0.12, 0.5, 0.1)),
+        ("BlueBox", (1.2, 1.2, 0.8), (-2.4, -0.8), 35.0, (0.1, 0.2, 0.65)),
+        ("YellowSlab", (1.6, 0.9, 0.4), (1.6, -2.0), -25.0, (0.75, 0.65, 0.1)),
+    ]
+    for name, (sx, sy, sz), (x, y), rot, colour in boxes:
+        add_mesh_object(scene, name, box_geometry((-sx / 2, -sy / 2, 0.0), (sx / 2, sy / 2, sz)),
+                        diffuse_material(name, colour, shader), location=(x, y, 0.0),
+                        rotation_z_deg=rot)
+    add_camera(scene, (8.5, -9.0, 5.5), (0.0, 0.3, 0.8), lens_mm=35.0)
+    return scene_facts(scene, [])
+
+
+def emission_material(name: str, color: Sequence[float], strength: float,
+                      principled: bool = False) -> bpy.types.Material:
+    """An Emission shader (colour x strength), or a black Principled BSDF with that emission."""
+    mat = bpy.data.materials.new(name)
+    mat.diffuse_color = (*color, 1.0)
+    tree = mat.node_tree
+    if tree is None:  # pragma: no cover - Blender < 5 needs nodes switched on
+        mat.use_nodes = True
+        tree = mat.node_tree
+    tree.nodes.clear()
+    out = tree.nodes.new("ShaderNodeOutputMaterial")
+    if principled:
+        node = tree.nodes.new("ShaderNodeBsdfPrincipled")
+        node.inputs["Base Color"].default_value = (0.0, 0.0, 0.0, 1.0)
+        node.inputs["Specular IOR Level"].default_value = 0.0
+        node.inputs["Roughness"].default_value = 1.0
+        node.inputs["Emission Color"].default_value = (*color, 1.0)
+        node.inputs["Emission Strength"].default_value = strength
+    else:
+        node = tree.nodes.new("ShaderNodeEmission")
+        node.inputs["Color"].default_value = (*color, 1.0)
+        node.inputs["Strength"].default_value = strength
+    tree.links.new(node.outputs[0], out.inputs["Surface"])
+    return mat
+
+
+def _panel(scene, name: str, corners: list, material) -> bpy.types.Object:
+    return add_mesh_object(scene, name, (corners, [(0, 1, 2, 3)]), material)
+
+
+def panel_room(resolution: Sequence[int] = (128, 128), *, shader: str = "DIFFUSE",
+               new_file: bool = True) -> dict:
+    """point_room's closed 4 x 5 x 3 m room and furniture, lit only by emissive panels: a
+    1.2 x 0.6 m ceiling panel (Emission shader, warm white, strength 12) 5 mm below the
+    ceiling and a 1.0 x 0.5 m wall panel (Principled BSDF, black, emission pale blue x 8)
+    5 mm in front of the -x wall; black world, no lamp. Returns the scene's facts."""
+    name = point_room(resolution, shader=shader, new_file=new_file)["scene"]
+    scene = bpy.data.scenes[name]
+    scene.name = "panel_room"
+    for ob in [o for o in scene.objects if o.type == "LIGHT"]:
+        light = ob.data
+        bpy.data.objects.remove(ob)
+        bpy.data.lights.remove(light)
+    z = 3.0 - 0.005
+    _panel(scene, "CeilingPanel", [(-0.6, 0.0, z), (-0.6, 0.6, z), (0.6, 0.6, z), (0.6, 0.0, z)],
+           emission_material("PanelWarm", (1.0, 0.85, 0.7), 12.0))
+    x = -2.0 + 0.005
+    _panel(scene, "WallPanel", [(x, 0.5, 1.2), (x, 1.5, 1.2), (x, 1.5, 1.7), (x, 0.5, 1.7)],
+           emission_material("PanelBlue", (0.6, 0.75, 1.0), 8.0, principled=True))
+    return scene_facts(scene, [])
+
+
 def soft_room(resolution: Sequence[int] = (128, 128), *, shader: str = "DIFFUSE",
               new_file: bool = True) -> dict:
     """A closed 4 x 4 x 2.8 m room (x, y in [-2, 2]) with a table, a box and a stool, lit by
@@ -349,6 +498,9 @@ BUILDERS: dict[str, Callable[..., dict]] = {
     "city": city,
     "sunlit_room": sunlit_room,
     "library": library,
+    "sky_room": sky_room,
+    "sky_yard": sky_yard,
+    "panel_room": panel_room,
     "soft_room": soft_room,
 }
 
@@ -363,6 +515,9 @@ SCENES: dict[str, tuple[str, dict]] = {
     "city": ("city", {}),
     "sunlit_room": ("sunlit_room", {}),
     "library": ("library", {}),
+    "sky_room": ("sky_room", {}),
+    "sky_yard": ("sky_yard", {}),
+    "panel_room": ("panel_room", {}),
     "soft_room": ("soft_room", {}),
 }
 
