@@ -189,7 +189,7 @@ TEXELS = np.array([[[0.9, 0.1, 0.2, 1.0], [0.2, 0.7, 0.1, 1.0]],
                    [[0.1, 0.3, 0.9, 1.0], [0.5, 0.5, 0.5, 1.0]]], np.float32)
 
 
-def image_patch(colorspace="sRGB", is_float=False, mapping=False, alpha=None):
+def image_patch(colorspace="sRGB", is_float=False, mapping=False, alpha=None, mixed=False):
     def build(nt, out):
         img = bpy.data.images.new(f"img {colorspace} {is_float} {mapping} {alpha}", 2, 2,
                                   float_buffer=is_float)
@@ -210,7 +210,16 @@ def image_patch(colorspace="sRGB", is_float=False, mapping=False, alpha=None):
             nt.links.new(uv.outputs["UV"], m.inputs["Vector"])
             nt.links.new(m.outputs["Vector"], t.inputs["Vector"])
         nt.links.new(t.outputs["Color"], p.inputs["Base Color"])
-        to_surface(nt, out, p)
+        if not mixed:
+            to_surface(nt, out, p)
+            return
+        # The same image node also colours a Diffuse BSDF, mixed 0.3 with the Principled.
+        d, m = nt.nodes.new("ShaderNodeBsdfDiffuse"), nt.nodes.new("ShaderNodeMixShader")
+        nt.links.new(t.outputs["Color"], d.inputs["Color"])
+        m.inputs[0].default_value = 0.3
+        nt.links.new(p.outputs[0], m.inputs[1])
+        nt.links.new(d.outputs[0], m.inputs[2])
+        to_surface(nt, out, m)
     return build
 
 
@@ -237,7 +246,8 @@ SHADER_CASES = {
     "refraction": shader("ShaderNodeBsdfRefraction"),
     "translucent": shader("ShaderNodeBsdfTranslucent"),
     "subsurface node": shader("ShaderNodeSubsurfaceScattering"),
-    "toon": shader("ShaderNodeBsdfToon"),
+    "toon": shader("ShaderNodeBsdfToon"), "sheen node": shader("ShaderNodeBsdfSheen"),
+    "diffuse roughness 1": pr(Diffuse_Roughness=1.0),
     "group": group, "reroute": reroute, "muted principled": muted_principled,
     "missing base color": missing_on("Base Color"), "missing metallic": missing_on("Metallic"),
     "color attribute": attribute("Col"),
@@ -253,6 +263,7 @@ TEXTURE_CASES = {
     "texture float": image_patch("Linear Rec.709", is_float=True),
     "texture mapping": image_patch("sRGB", mapping=True),
     "texture alpha 0.5": image_patch("sRGB", alpha=0.5),
+    "texture in both mixed shaders": image_patch("sRGB", mixed=True),
 }
 CORNER_COLOR = (0.2, 0.6, 0.4, 1.0)
 
@@ -517,3 +528,26 @@ def test_large_images_are_resampled_to_the_budget():
     assert np.allclose(out[3, 5], px[6:8, 10:12].mean(axis=(0, 1)), atol=1e-6)
     assert materials.resample_to_budget(px[:1024, :1024], materials.TEXTURE_BUDGET).shape == (
         1024, 1024, 4)
+
+
+def test_uvs_follow_the_corners_of_mirrored_instances(empty_file):
+    """A mirrored object's corners are swapped to keep its winding: its UVs and colours move
+    with them (uv = the local xy of each corner here)."""
+    img = bpy.data.images.new("grid", 2, 2)
+    mat, nt, out = new_material("tex")
+    p = principled(nt)
+    t = nt.nodes.new("ShaderNodeTexImage")
+    t.image = img
+    nt.links.new(t.outputs["Color"], p.inputs["Base Color"])
+    to_surface(nt, out, p)
+    plain = quad("plain", mat)
+    plain.data.uv_layers.new(name="UVMap").uv.foreach_set("vector", [0, 0, 1, 0, 1, 1, 0, 1])
+    mirrored = bpy.data.objects.new("mirrored", plain.data)
+    mirrored.scale = (-1.0, 1.0, 1.0)
+    mirrored.location = (0.0, 0.0, 2.0)
+    bpy.context.scene.collection.objects.link(mirrored)
+    s = run()
+    for name, sign in (("plain", 1.0), ("mirrored", -1.0)):
+        tri = triangles(s, name)
+        assert np.allclose(s.uvs[tri, :, 0], sign * s.positions[tri, :, 0], atol=1e-6), name
+        assert np.allclose(s.uvs[tri, :, 1], s.positions[tri, :, 1], atol=1e-6), name

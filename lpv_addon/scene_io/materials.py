@@ -189,9 +189,11 @@ class _Evaluator:
                 return self.combine(a, 1.0, b, 1.0), ea + eb
             f = float(np.clip(self.value(node.inputs[0], stack), 0.0, 1.0))
             return self.combine(a, 1.0 - f, b, f), (1.0 - f) * ea + f * eb
-        if kind == "ShaderNodeBsdfSheen":
-            self.note(f"Sheen BSDF '{node.name}' taken as no diffuse (its albedo is about 0.02)")
-            return _const(zero), zero
+        if kind == "ShaderNodeBsdfSheen":  # Cycles counts sheen as diffuse: its albedo x Color
+            rough = np.clip(self.value(node.inputs["Roughness"], stack), 0.0, 1.0)
+            c = self.color(node.inputs["Color"], stack)
+            c.const = c.const * np.interp(rough, _ROUGHNESS, _SHEEN_ALBEDO)
+            return c, zero
         self.note(f"shader '{node.name}' ({kind}) is not evaluated: grey 0.8")
         return _const(DEFAULT_ALBEDO), zero
 
@@ -244,6 +246,9 @@ class _Evaluator:
         if wa == 0 or not a.const.any():
             return _Color(b.const * wb, b.pixels, b.node, b.digest, b.attr)
         if a.attr is None and b.attr is None:
+            if a.pixels is not None and a.digest == b.digest and a.node == b.node:
+                # One image on both sides (the same node): its factors add.
+                return _Color(wa * a.const + wb * b.const, a.pixels, a.node, a.digest)
             if a.pixels is not None and b.pixels is not None:
                 self.note(f"two images mixed ('{a.node.image.name}', '{b.node.image.name}'): "
                           f"the mean colour of '{b.node.image.name}' used")
