@@ -145,15 +145,31 @@ def direct(engine, scene, bounds, positions, normals, stats, material: int | Non
     return e
 
 
+def cascade_surfels(positions: np.ndarray, chain: list):
+    """Surfels (centres, normals, areas, triangle) one cell of their own cascade apart: those
+    of cascade c where it is the finest (cascades.assign), from the triangles touching its box
+    (an RSM's texels are about a cell apart too; the injection splats them over 8 cells)."""
+    from .cascades import assign
+
+    lo_t, hi_t = positions.min(axis=1), positions.max(axis=1)
+    parts = []
+    for c, g in enumerate(chain):
+        lo, hi = g.bounds()
+        hit = np.nonzero(np.all((hi_t >= lo) & (lo_t <= hi), axis=1))[0]
+        pos, nrm, area, tri = surfels(positions[hit], g.cell_size, with_index=True)
+        own = assign(chain, pos) == c if len(chain) > 1 else slice(None)
+        parts.append((pos[own], nrm[own], area[own], hit[tri[own]]))
+    return tuple(np.concatenate(a) for a in zip(*parts))
+
+
 def propagate(engine, scene, src: Source, run, bounds, stats) -> list:
-    """A source's propagated grids (one per cascade, unweighted): caster surfels (two-sided, at
-    half the finest cell, as Engine._more_bounces) lit by its direct light, their flux E x area
-    x GI reflectance injected and propagated through ``run`` (Engine._source caches them)."""
+    """A source's propagated grids (one per cascade, unweighted): caster surfels (two-sided,
+    cascade_surfels) lit by its direct light, their flux E x area x GI reflectance injected
+    and propagated through ``run`` (Engine._source caches them)."""
     chain = run.chain
     maps(engine, scene, bounds, stats)  # timed on its own (source_maps)
     t0 = time.perf_counter()
-    cell = chain[0].cell_size
-    pos, nrm, area, tri = surfels(scene.positions, 0.5 * cell, with_index=True)
+    pos, nrm, area, tri = cascade_surfels(scene.positions, chain)
     refl = scene.reflectance_per_triangle()[tri].astype(np.float64)
     pos2, nrm2 = np.concatenate([pos, pos]), np.concatenate([nrm, -nrm])
     e = direct(engine, scene, bounds, pos2, nrm2, stats,

@@ -164,10 +164,8 @@ def test_world_bounce_reaches_the_wall_and_never_adds_energy():
     wall = passes["Diffuse Color"][..., 0] > 0
     assert passes["Diffuse Indirect"][wall].mean() > 0.01 * L
     # the direct flux onto every caster surfel, both sides, as sources.propagate samples it
-    from lpv_core.geometry_volume import surfels
-
-    pos, nrm, area = surfels(scene.positions, 0.5 * result.fine[0][0].cell_size
-                             if result.fine else 0.5 * result.grid.cell_size)
+    chain = [g for g, _, _ in result.fine] + [result.grid]
+    pos, nrm, area, _ = sources.cascade_surfels(scene.positions, chain)
     e = [sources.direct(eng, scene, eng.lpv_bounds(scene), pos, s * nrm, engine.Stats())
          for s in (1, -1)]
     received = float(sum((ei * area[:, None]).sum() for ei in e))

@@ -1,7 +1,7 @@
 """Benchmark: per-stage medians of the LPV update and render on the built-in Cornell box.
 
     python -m tools.bench [--quick] [--json] [--repeat N] [--resolution WxH]
-                             [--sweep | --sweep-quick] [--sweep-only] [--lights N]
+                             [--sweep | --sweep-quick] [--sweep-only] [--lights N] [--world]
 
 Prints one JSON object (--json) or a table. Times are medians over the repeats, measured in one
 run on this machine; compare ratios, not absolute numbers, across machines.
@@ -17,7 +17,8 @@ roofline of the dense propagation step of each transport model (dom, sh) and the
 lookup) under the key "sweep";
 ``--sweep-quick`` a tiny version of it (for tests); ``--sweep-only`` skips the Cornell box
 figures. ``--lights N`` times only one frame of the box lit by N point lights, per light,
-with its peak memory (the shadow and RSM budgets, render/shadows.py). See docs/benchmarks.md.
+with its peak memory (the shadow and RSM budgets, render/shadows.py). ``--world`` times only the
+update with and without a uniform World. See docs/benchmarks.md.
 """
 
 from __future__ import annotations
@@ -168,6 +169,49 @@ def incremental(repeat: int, settings: GISettings) -> dict:
     }
 
 
+def world(repeat: int) -> dict:
+    """The Cornell box (one spot) at STATED with and without a uniform World (Blender's default
+    grey 0.05): median full update (caches cleared), the ratio the issue bounds, and the update
+    after the lamp moved (the World's grids and maps reused)."""
+    from lpv_core.scene import World
+
+    settings = GISettings().updated(**STATED)
+    out = {}
+    for name, w in (("without", None), ("with", World("World", np.full((1, 1, 3), 0.05,
+                                                                      np.float32)))):
+        scene = demo.cornell_box("SPOT", (64, 64), settings)
+        scene.world = w
+        eng = engine.Engine()
+        eng.update(scene)  # warm-up
+        stages: dict = {}
+
+        def cold(sc, i, eng=eng):
+            eng.clear_cache()
+
+        times = []
+        for i in range(repeat):
+            cold(scene, i)
+            stats = engine.Stats()
+            t0 = time.perf_counter()
+            eng.update(scene, stats)
+            times.append((time.perf_counter() - t0) * 1000.0)
+            for k, v in stats.ms.items():
+                stages.setdefault(k, []).append(v)
+        eng.update(scene)
+
+        def move(sc, i):
+            sc.lights[0].matrix = sc.lights[0].matrix.copy()
+            sc.lights[0].matrix[0, 3] += 0.01
+
+        out[name] = {"full_update_ms": statistics.median(times),
+                     "median_ms": {k: statistics.median(v) for k, v in stages.items()},
+                     "light_moved_ms": _median_update_ms(eng, scene, move, repeat)}
+    out["full_ratio"] = out["with"]["full_update_ms"] / out["without"]["full_update_ms"]
+    out["light_moved_ratio"] = (out["with"]["light_moved_ms"]
+                                / out["without"]["light_moved_ms"])
+    return out
+
+
 def many_lights_scene(n: int, resolution: tuple[int, int], settings: GISettings | None = None):
     """The Cornell box lit by ``n`` point lights (300 W in all) at fixed pseudo-random places
     in the layer above the tall block (z 1.3-1.9 m)."""
@@ -241,6 +285,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--lights", type=int, default=None, metavar="N",
                    help="only one frame of the Cornell box lit by N point lights (default "
                         "256x256): time per light and peak memory")
+    p.add_argument("--world", action="store_true",
+                   help="only the update with and without a uniform World (STATED settings)")
     args = p.parse_args(argv)
     if args.sweep_only and not (args.sweep or args.sweep_quick):
         p.error("--sweep-only needs --sweep or --sweep-quick")
@@ -249,6 +295,20 @@ def main(argv: list[str] | None = None) -> int:
     if args.resolution:
         w, h = args.resolution.lower().split("x")
         res = (int(w), int(h))
+    if args.world:
+        out = world(max(repeat, 5))
+        if args.json:
+            print(json.dumps(out))
+            return 0
+        for name in ("without", "with"):
+            o = out[name]
+            print(f"Cornell box at 3 x 32^3 {name} a World: full update "
+                  f"{o['full_update_ms']:.1f} ms, after the lamp moved {o['light_moved_ms']:.1f} ms")
+            for k, v in sorted(o["median_ms"].items(), key=lambda kv: -kv[1])[:8]:
+                print(f"    {k:<16} {v:9.1f} ms")
+        print(f"  with / without: full {out['full_ratio']:.2f}, lamp moved "
+              f"{out['light_moved_ratio']:.2f}")
+        return 0
     if args.lights is not None:
         if args.lights < 1:
             p.error(f"--lights must be at least 1, not {args.lights}")
