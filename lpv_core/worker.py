@@ -27,6 +27,7 @@ on "quit" or when stdin closes (the parent went away).
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import os
 import sys
@@ -37,6 +38,7 @@ import numpy as np
 from .runtime import warmup
 from .scene import textures
 from .scene.model import LIGHT_TYPES, Area, Camera, GISettings, Light, Material, Scene
+from .scene.world import World
 
 # ------------------------------------------------------------------------ scene <-> npz
 
@@ -76,6 +78,22 @@ def _material_json(material: Material, folder: str) -> dict:
     return out
 
 
+def _world_json(world, folder: str) -> dict | None:
+    """The World's fields as JSON, its radiance map by digest in ``folder`` like a texture's
+    (written once per digest)."""
+    if world is None:
+        return None
+    radiance = np.ascontiguousarray(world.radiance, np.float32)
+    digest = world.digest or hashlib.blake2b(radiance.tobytes(), digest_size=16).hexdigest()
+    file = os.path.join(folder, digest + ".npy")
+    if not os.path.exists(file):
+        os.makedirs(folder, exist_ok=True)
+        np.save(file + ".tmp.npy", radiance)
+        os.replace(file + ".tmp.npy", file)
+    return {"name": world.name, "gi_intensity": float(world.gi_intensity),
+            "enabled": bool(world.enabled), "digest": digest}
+
+
 TEXTURE_FILES_BYTES = 4 * textures.BUDGET_BYTES  # the texture folder's size before pruning
 
 
@@ -91,13 +109,18 @@ def _prune_textures(folder: str, used: set) -> None:
         if total <= TEXTURE_FILES_BYTES:
             break
         if e.name[:-4] not in used:
-            total -= e.stat().st_size
-            os.unlink(e.path)
+            size = e.stat().st_size
+            try:
+                os.unlink(e.path)
+            except OSError:  # Windows: still mapped by the worker; the next save retries
+                continue
+            total -= size
 
 
 def save_scene(path: str, scene: Scene) -> None:
     """Write a core Scene (everything the engine and the deferred renderer use) to ``path``;
-    texture pixels to TEXTURE_FOLDER beside it, once per digest (_material_json)."""
+    texture pixels and the World's map to TEXTURE_FOLDER beside it, once per digest
+    (_material_json, _world_json)."""
     arrays = {
         "positions": scene.positions, "normals": scene.normals,
         "material_index": scene.material_index,
@@ -116,9 +139,11 @@ def save_scene(path: str, scene: Scene) -> None:
         "dropped": dict(scene.dropped),
         "approximated": list(scene.approximated),
         "camera": None if scene.camera is None else _as_json(scene.camera),
+        "world": _world_json(scene.world, folder),
     }
     arrays["meta"] = np.array(json.dumps(meta))
     used = {m["texture"]["digest"] for m in meta["materials"] if m.get("texture")}
+    used |= {meta["world"]["digest"]} if meta["world"] else set()
     if used:
         _prune_textures(folder, used)
     tmp = path + ".tmp.npz"
@@ -149,16 +174,25 @@ def load_scene(path: str, held: dict | None = None) -> Scene:
                                             "emission": np.float32})
         if tex is not None:
             pixels = known.get(tex["digest"])
-            if pixels is None:
-                pixels = np.load(os.path.join(folder, tex["digest"] + ".npy"))
+            if pixels is None:  # mapped, not read: the engine's fitted copy is what it holds
+                pixels = np.load(os.path.join(folder, tex["digest"] + ".npy"), mmap_mode="r")
                 known[tex["digest"]] = pixels
             material.texture = textures.Texture(tex["name"], pixels, tex["interpolation"],
                                                 tex["extension"], tex["digest"])
         materials.append(material)
+    world = meta.get("world")
+    if world is not None:
+        radiance = known.get(world["digest"])
+        if radiance is None:
+            radiance = np.load(os.path.join(folder, world["digest"] + ".npy"))
+        world = World(world["name"], radiance, world["gi_intensity"], world["enabled"],
+                      world["digest"])
     if held is not None:
         held.clear()
         held.update({m.texture.digest: m.texture.pixels for m in materials
                      if m.texture is not None})
+        if world is not None:
+            held[world.digest] = world.radiance
     lights = []
     for d in meta["lights"]:
         light = _dataclass(Light, d, {"matrix": np.float64, "color": np.float32,
@@ -181,6 +215,7 @@ def load_scene(path: str, held: dict | None = None) -> Scene:
         material_index=data["material_index"], materials=materials, lights=lights,
         camera=camera, settings=settings, object_names=meta["object_names"],
         dropped=meta["dropped"], areas=areas, approximated=meta.get("approximated", []),
+        world=world,
         **opt,
     )
 

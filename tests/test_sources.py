@@ -285,3 +285,27 @@ def test_world_lookup_follows_cycles_equirectangular_convention():
     np.testing.assert_allclose(got_cols, [0.5, 1.5, 2.5], atol=1e-6)
     got_rows = sky.lookup(World("r", np.ascontiguousarray(rows)), look[3:])[:, 0]
     np.testing.assert_allclose(got_rows, [1.0, 0.0], atol=1e-6)
+
+
+def test_worker_scene_files_carry_the_world_once_per_digest(tmp_path):
+    """save_scene / load_scene keep the World's map, GI intensity and switch; the map is written
+    once per digest beside the scene files, and a worker holding it reads no file."""
+    from lpv_core import worker
+
+    radiance = np.random.default_rng(2).random((8, 16, 3)).astype(np.float32)
+    scene = spot_room(world=World("Sky", radiance, 0.5, False, "d1"))
+    path = str(tmp_path / "a.npz")
+    worker.save_scene(path, scene)
+    file = tmp_path / worker.TEXTURE_FOLDER / "d1.npy"
+    stamp = file.stat().st_mtime_ns
+    worker.save_scene(str(tmp_path / "b.npz"), scene)
+    assert file.stat().st_mtime_ns == stamp  # not written again
+    held: dict = {}
+    back = worker.load_scene(path, held)
+    np.testing.assert_array_equal(back.world.radiance, radiance)
+    assert (back.world.name, back.world.gi_intensity, back.world.enabled) == ("Sky", 0.5, False)
+    file.unlink()
+    assert worker.load_scene(str(tmp_path / "b.npz"), held).world.digest == "d1"
+    scene.world = None
+    worker.save_scene(path, scene)
+    assert worker.load_scene(path).world is None
