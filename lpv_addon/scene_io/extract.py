@@ -17,7 +17,6 @@ import numpy as np
 from .._core import core
 from .materials import (  # noqa: F401 - re-exported: the material half of the extraction
     DEFAULT_ALBEDO,
-    image_mean_color,
     material_albedo,
     material_emits,
     material_info,

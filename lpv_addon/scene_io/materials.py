@@ -615,7 +615,9 @@ def image_pixels(image) -> tuple[str, np.ndarray | None, float]:
                   "negative texels set to 0", file=sys.stderr)
             rgb[bad] = 0.0
     rgb = resample_to_budget(rgb, TEXTURE_BUDGET)
-    entry = np.ascontiguousarray(rgb, np.float32), mean_alpha
+    rgb = np.ascontiguousarray(rgb, np.float32)
+    rgb.flags.writeable = False  # shared by every Scene extracted while it is cached
+    entry = rgb, mean_alpha
     _textures[digest] = entry
     while sum(t[0].shape[0] * t[0].shape[1] for t in _textures.values()) > _CACHE_PIXELS and \
             len(_textures) > 1:
@@ -659,15 +661,5 @@ def srgb_to_linear(c: np.ndarray) -> np.ndarray:
                     ((c + np.float32(0.055)) / np.float32(1.055)) ** np.float32(2.4))
 
 
+# Byte values k / 255 decoded (indexed by k).
 _BYTE_SRGB = srgb_to_linear(np.arange(256, dtype=np.float32) / np.float32(255.0))
-
-
-def _byte_srgb_to_linear(c: np.ndarray) -> np.ndarray:
-    """srgb_to_linear of byte values read as float (k / 255): a 256-entry table, exact."""
-    return _BYTE_SRGB[np.rint(np.clip(c, 0.0, 1.0) * 255.0).astype(np.intp)]
-
-
-def image_mean_color(image, cache: dict | None = None) -> np.ndarray | None:
-    """Mean scene-linear RGB of an image as the Image Texture node reads it; None if missing."""
-    _, rgb, _ = image_pixels(image)
-    return None if rgb is None else rgb.reshape(-1, 3).mean(0).astype(np.float32)
