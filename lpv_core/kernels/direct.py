@@ -316,19 +316,21 @@ def _lookup(lp, mats, ortho, scale, depths, face_view, single, res, x, y, z,
     vz = x * mat[2, 0] + y * mat[2, 1] + z * mat[2, 2] + mat[2, 3]
     ok = True
     if ortho[view]:
-        u, v = vx / s, vy / s
+        inv = 1.0 / s
     else:
         zz = -vz
         ok = zz > 0
-        if not ok:
-            zz = 1.0
-        u, v = vx / zz / s, vy / zz / s
+        inv = 1.0 / (zz * s) if ok else 1.0 / s
+    u, v = vx * inv, vy * inv
     if single:
         ok = ok and abs(u) <= 1.0 and abs(v) <= 1.0
     if not ok:
         return np.inf, False
     ix = int(min(max(np.floor((u + 1.0) * 0.5 * res), 0.0), res - 1.0))
     iy = int(min(max(np.floor((1.0 - v) * 0.5 * res), 0.0), res - 1.0))
+    d = np.float64(depths[view, iy, ix])
+    if not d < dist - bias:
+        return d, False
     uc = (ix + 0.5) / res * 2.0 - 1.0
     vc = 1.0 - (iy + 0.5) / res * 2.0
     if ortho[view]:
@@ -337,6 +339,7 @@ def _lookup(lp, mats, ortho, scale, depths, face_view, single, res, x, y, z,
         y0y = ax * mat[0, 1] + ay * mat[1, 1] + az * mat[2, 1]
         y0z = ax * mat[0, 2] + ay * mat[1, 2] + az * mat[2, 2]
         fx, fy, fz = -mat[2, 0], -mat[2, 1], -mat[2, 2]
+        ln = 1.0
     else:
         y0x, y0y, y0z = lp[0], lp[1], lp[2]
         ax, ay, az = uc * s, vc * s, -1.0
@@ -344,12 +347,10 @@ def _lookup(lp, mats, ortho, scale, depths, face_view, single, res, x, y, z,
         fy = ax * mat[0, 1] + ay * mat[1, 1] + az * mat[2, 1]
         fz = ax * mat[0, 2] + ay * mat[1, 2] + az * mat[2, 2]
         ln = np.sqrt(fx * fx + fy * fy + fz * fz)
-        fx, fy, fz = fx / ln, fy / ln, fz / ln
     num = nx * (qx - y0x) + ny * (qy - y0y) + nz * (qz - y0z)
     den = nx * fx + ny * fy + nz * fz
-    t = num / den if num * den > 0 else np.inf
-    d = np.float64(depths[view, iy, ix])
-    return d, d < min(dist, t) - bias
+    t = num * ln / den if num * den > 0 else np.inf
+    return d, d < t - bias
 
 
 @jit.kernel

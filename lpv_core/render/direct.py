@@ -164,14 +164,14 @@ def _lookup(shadow: ShadowMap, x: np.ndarray, p_off: np.ndarray, n: np.ndarray,
         vp = _transform(m, x[sel])
         if view.ortho:
             scale = view.half_extent
-            u, v = vp[:, 0] / scale, vp[:, 1] / scale
             ok = np.ones(sel.size, bool)
+            inv = np.full(sel.size, 1.0 / scale)
         else:
             scale = view.tan_half
             z = -vp[:, 2]
             ok = z > 0
-            zs = np.where(ok, z, 1.0)
-            u, v = vp[:, 0] / zs / scale, vp[:, 1] / zs / scale
+            inv = np.where(ok, 1.0 / np.where(ok, z * scale, 1.0), 1.0 / scale)
+        u, v = vp[:, 0] * inv, vp[:, 1] * inv
         if single:
             ok &= (np.abs(u) <= 1.0) & (np.abs(v) <= 1.0)
         ix = np.clip(np.floor((u + 1.0) * 0.5 * res), 0, res - 1).astype(int)
@@ -182,17 +182,18 @@ def _lookup(shadow: ShadowMap, x: np.ndarray, p_off: np.ndarray, n: np.ndarray,
         if view.ortho:
             y0 = (np.c_[uc * scale, vc * scale, np.zeros(sel.size)] - m[:3, 3]) @ rot
             f = np.broadcast_to(-rot[2], y0.shape)
+            length = np.ones(sel.size)
         else:
             y0 = np.broadcast_to(light.position, (sel.size, 3))
             f = np.c_[uc * scale, vc * scale, -np.ones(sel.size)] @ rot
-            f = f / np.sqrt(np.einsum("ij,ij->i", f, f))[:, None]
+            length = np.sqrt(np.einsum("ij,ij->i", f, f))
         nn = n[sel]
         num = np.einsum("ij,ij->i", nn, p_off[sel] - y0)
         den = np.einsum("ij,ij->i", nn, f)
-        t = np.where(num * den > 0, num / np.where(den != 0, den, 1.0), np.inf)
+        t = np.where(num * den > 0, num * length / np.where(den != 0, den, 1.0), np.inf)
         d = depth[iy, ix].astype(np.float64)
         depth_out[sel] = np.where(ok, d, np.inf)
-        blocked[sel] = ok & (d < np.minimum(dist[sel], t) - bias[sel])
+        blocked[sel] = ok & (d < dist[sel] - bias[sel]) & (d < t - bias[sel])
     return depth_out, blocked
 
 
