@@ -235,10 +235,12 @@ def test_untextured_scene_takes_no_textured_path():
     assert set(eng.raster._fbos) <= {(k[0], k[1], n) for k in eng.raster._fbos for n in (1, 2, 4)}
 
 
-def test_white_texture_gives_the_untextured_passes():
+@pytest.mark.parametrize("bounces", [1, 2])
+def test_white_texture_gives_the_untextured_passes(bounces):
     """A texture of ones (and corner colours of ones) on every material takes the textured
-    path and gives the untextured render's passes (float32 rounding apart)."""
-    plain = demo.cornell_box("SPOT", (24, 24), GISettings(antialias=1))
+    path (RSM texels, G-buffer, later bounces' surfels) and gives the untextured render's
+    passes (float32 rounding apart)."""
+    plain = demo.cornell_box("SPOT", (24, 24), GISettings(antialias=1, bounces=bounces))
     white = Texture("white", np.ones((2, 2, 3), np.float32), "Linear", "REPEAT", "ones")
     mats = [dataclasses.replace(m, texture=white) for m in plain.materials]
     textured = dataclasses.replace(plain, materials=mats,
