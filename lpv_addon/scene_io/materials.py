@@ -594,10 +594,12 @@ def image_pixels(image) -> tuple[str, np.ndarray | None, float]:
     straight = image.alpha_mode == "STRAIGHT" and channels == 4 and mean_alpha != 1.0
     space = image.colorspace_settings.name
     if not image.is_float:
-        # Byte values k / 255. Cycles associates straight alpha: colour x alpha in the byte's
-        # own encoding, rounded to a byte, then linearised (measured, docs/algorithm.md).
-        q = ((rgb * alpha if straight else rgb) * np.float32(255.0) + np.float32(0.5)).astype(
-            np.uint8)
+        # Byte values k / 255. Cycles associates straight alpha in the bytes, c x a // 255
+        # (truncated), then decodes (measured, docs/algorithm.md).
+        q = (rgb * np.float32(255.0) + np.float32(0.5)).astype(np.uint8)
+        if straight:
+            a = (alpha * np.float32(255.0) + np.float32(0.5)).astype(np.uint16)
+            q = (q * a // 255).astype(np.uint8)
         if space == "sRGB":
             rgb = _BYTE_SRGB[q]
         else:
