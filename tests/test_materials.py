@@ -256,7 +256,6 @@ SHADER_CASES = {
     "mix color mix": rgb_mix("MIX", 0.25, (0.0, 0.2, 1.0, 1.0)),
     "mix color multiply": rgb_mix("MULTIPLY", 0.5, (0.5, 1.0, 0.0, 1.0)),
 }
-TOLERANCE: dict = {}  # per case, where one differs (none today: all within 1e-4)
 TEXTURE_CASES = {
     "texture sRGB": image_patch("sRGB"),
     "texture Non-Color": image_patch("Non-Color"),
@@ -324,7 +323,7 @@ def test_albedo_matches_cycles_diffuse_color(reference, case):
     ours = mat.albedo.astype(np.float64)
     if s.corner_colors is not None:
         ours = ours * s.corner_colors[tri].reshape(-1, 3).mean(axis=0)
-    assert np.allclose(ours, cycles_value.mean(axis=0), atol=TOLERANCE.get(case, 5e-4)), (
+    assert np.allclose(ours, cycles_value.mean(axis=0), atol=5e-4), (
         case, ours, cycles_value.mean(axis=0))
 
 

@@ -381,6 +381,8 @@ class _Evaluator:
             self.note(line)
             print(f"LPV GI: material '{self.mat.name}': {line}", file=sys.stderr)
             return _const(MAGENTA)
+        if image.source == "TILED":
+            self.note(f"image '{image.name}' has UDIM tiles: its first tile used")
         uv = self.uv_source(node, stack)
         if uv is None:
             self.note(f"image '{image.name}' is not mapped by a UV map: its mean colour used")
