@@ -436,16 +436,25 @@ def emission_material(name: str, color: Sequence[float], strength: float,
     return mat
 
 
-def _panel(scene, name: str, corners: list, material) -> bpy.types.Object:
-    return add_mesh_object(scene, name, (corners, [(0, 1, 2, 3)]), material)
+def _luminaire(scene, name: str, lo: Sequence[float], hi: Sequence[float], face: str,
+               light: bpy.types.Material, frame: bpy.types.Material) -> bpy.types.Object:
+    """A thin box from ``lo`` to ``hi`` (normals out) whose ``face`` emits (``light``), the
+    other faces a diffuse ``frame``: a mounted panel, no light behind it."""
+    ob = add_mesh_object(scene, name, box_geometry(lo, hi), frame)
+    ob.data.materials.append(light)
+    axis, sign = "xyz".index(face[1]), (1.0 if face[0] == "+" else -1.0)
+    for poly in ob.data.polygons:
+        poly.material_index = 1 if poly.normal[axis] * sign > 0.5 else 0
+    return ob
 
 
 def panel_room(resolution: Sequence[int] = (128, 128), *, shader: str = "DIFFUSE",
                new_file: bool = True) -> dict:
-    """point_room's closed 4 x 5 x 3 m room and furniture, lit only by emissive panels: a
-    1.2 x 0.6 m ceiling panel (Emission shader, warm white, strength 12) 5 mm below the
-    ceiling and a 1.0 x 0.5 m wall panel (Principled BSDF, black, emission pale blue x 8)
-    5 mm in front of the -x wall; black world, no lamp. Returns the scene's facts."""
+    """point_room's closed 4 x 5 x 3 m room and furniture, lit only by emissive panels, each
+    the front face of a 3 cm box on the surface (its other faces dark grey): a 1.2 x 0.6 m
+    ceiling panel (Emission shader, warm white, strength 12) and a 1.0 x 0.5 m wall panel
+    on the -x wall (Principled BSDF, black, emission pale blue x 8); black world, no lamp.
+    Returns the scene's facts."""
     name = point_room(resolution, shader=shader, new_file=new_file)["scene"]
     scene = bpy.data.scenes[name]
     scene.name = "panel_room"
@@ -453,12 +462,11 @@ def panel_room(resolution: Sequence[int] = (128, 128), *, shader: str = "DIFFUSE
         light = ob.data
         bpy.data.objects.remove(ob)
         bpy.data.lights.remove(light)
-    z = 3.0 - 0.005
-    _panel(scene, "CeilingPanel", [(-0.6, 0.0, z), (-0.6, 0.6, z), (0.6, 0.6, z), (0.6, 0.0, z)],
-           emission_material("PanelWarm", (1.0, 0.85, 0.7), 12.0))
-    x = -2.0 + 0.005
-    _panel(scene, "WallPanel", [(x, 0.5, 1.2), (x, 1.5, 1.2), (x, 1.5, 1.7), (x, 0.5, 1.7)],
-           emission_material("PanelBlue", (0.6, 0.75, 1.0), 8.0, principled=True))
+    frame = diffuse_material("PanelFrame", (0.1, 0.1, 0.1), shader)
+    _luminaire(scene, "CeilingPanel", (-0.6, 0.0, 2.97), (0.6, 0.6, 2.999), "-z",
+               emission_material("PanelWarm", (1.0, 0.85, 0.7), 12.0), frame)
+    _luminaire(scene, "WallPanel", (-1.999, 0.5, 1.2), (-1.97, 1.5, 1.7), "+x",
+               emission_material("PanelBlue", (0.6, 0.75, 1.0), 8.0, principled=True), frame)
     return scene_facts(scene, [])
 
 
