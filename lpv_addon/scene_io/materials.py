@@ -1,13 +1,13 @@
 """Blender material -> core Material: the diffuse albedo Cycles reports as Diffuse Color, the
 image it is textured with, the UV map and colour attribute it reads, and what it emits.
 
-The rule (measured against Cycles 5.0's Diffuse Color pass, docs/algorithm.md "Materials"):
-Principled = base colour x (1 - metallic) x (1 - transmission) x alpha x (1 - F0 x specular
-tint) x mix(1, coat tint, coat) x (1 - 0.04 coat), F0 = ((ior - 1) / (ior + 1))^2 x 2 x
-specular IOR level (the dielectric layer's reflectance at normal incidence); Diffuse,
-Translucent, Subsurface Scattering and Toon: their colour; Mix Shader: the weighted sum, Add
-Shader the sum; Emission, Glossy, Glass, Refraction, Transparent, Metallic: 0. Node groups,
-reroutes and muted nodes (their internal links) are followed as Blender evaluates them.
+The rule (measured on Cycles' Diffuse Color pass, Blender 5.3.0; docs/algorithm.md
+"Materials"): Principled = base colour x (1 - metallic) x (1 - transmission) x alpha x what its
+specular, sheen and coat layers pass down head-on (measured tables below), plus the sheen's own
+albedo; Diffuse, Translucent, Subsurface Scattering, Toon (diffuse) and Sheen (x its albedo):
+their colour; Mix Shader: the weighted sum, Add Shader the sum; Emission, Glossy, Glass,
+Refraction, Transparent, Metallic: 0. Node groups, reroutes and muted nodes (their internal
+links) are followed as Blender evaluates them.
 
 Textures are read once per content digest and kept in a bounded cache across extractions, so
 changing one image re-reads only that image. Budget: at most ``TEXTURE_BUDGET`` (1024^2)
@@ -520,7 +520,7 @@ def material_info(mat) -> MaterialInfo:
     return info
 
 
-def material_albedo(mat, image_cache: dict | None = None) -> np.ndarray:
+def material_albedo(mat) -> np.ndarray:
     """The mean diffuse albedo of ``mat`` (its factor x its texture's mean colour): the single
     colour a material shows where one colour is asked for."""
     info = material_info(mat)
