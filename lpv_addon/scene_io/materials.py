@@ -379,7 +379,7 @@ class _Evaluator:
             path = bpy.path.abspath(image.filepath) if image.filepath else "(no file)"
             line = f"image '{image.name}' is missing ({path}): magenta, as Cycles shows it"
             self.note(line)
-            print(f"LPV GI: material '{self.mat.name}': {line}", file=sys.stderr)
+            _warn(f"LPV GI: material '{self.mat.name}': {line}")
             return _const(MAGENTA)
         if image.source == "TILED":
             self.note(f"image '{image.name}' has UDIM tiles: its first tile used")
@@ -480,6 +480,16 @@ def _default_color(socket) -> np.ndarray:
     if np.ndim(v) == 0:
         return np.full(3, float(v))
     return np.array(v[:3], np.float64)
+
+
+_warned: set[str] = set()
+
+
+def _warn(line: str) -> None:
+    """``line`` on stderr, once per session (live updates extract again and again)."""
+    if line not in _warned:
+        _warned.add(line)
+        print(line, file=sys.stderr)
 
 
 def _hash(text: str) -> str:
@@ -606,8 +616,7 @@ def image_pixels(image) -> tuple[str, np.ndarray | None, float]:
             rgb = _BYTE_SRGB[q]
         else:
             if space not in _LINEAR_SPACES:
-                print(f"LPV GI: image '{image.name}': colour space '{space}' read as linear",
-                      file=sys.stderr)
+                _warn(f"LPV GI: image '{image.name}': colour space '{space}' read as linear")
             rgb = q * np.float32(1.0 / 255.0)
     else:
         rgb = rgb * alpha if straight else np.ascontiguousarray(rgb)
@@ -615,8 +624,8 @@ def image_pixels(image) -> tuple[str, np.ndarray | None, float]:
             bad = ~(np.isfinite(rgb) & (rgb >= 0))
         if bad.any():
             _defaulted[digest] = int(bad.any(axis=2).sum())
-            print(f"LPV GI: image '{image.name}': {_defaulted[digest]} non-finite or "
-                  "negative texels set to 0", file=sys.stderr)
+            _warn(f"LPV GI: image '{image.name}': {_defaulted[digest]} non-finite or "
+                  "negative texels set to 0")
             rgb[bad] = 0.0
     rgb = resample_to_budget(rgb, TEXTURE_BUDGET)
     rgb = np.ascontiguousarray(rgb, np.float32)
