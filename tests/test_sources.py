@@ -309,3 +309,61 @@ def test_worker_scene_files_carry_the_world_once_per_digest(tmp_path):
     scene.world = None
     worker.save_scene(path, scene)
     assert worker.load_scene(path).world is None
+
+
+@pytest.mark.bpy
+def test_world_map_convention_matches_cycles_environment_texture(tmp_path):
+    """An Environment Texture (a smooth 16 x 32 map, Linear) seen by a 100 deg camera looking
+    along (1, 1, 0.5): Cycles' Combined at each pixel equals sky.lookup along that pixel's ray
+    (2 %); the same map mirrored in longitude or flipped in latitude misses by far more."""
+    bpy = pytest.importorskip("bpy")
+    from mathutils import Matrix, Vector
+
+    from lpv_core.render import exr
+
+    dirs, _ = sky.map_directions(16, 32)
+    radiance = (1.0 + 0.6 * dirs[..., 0] + 0.3 * dirs[..., 1] + 0.45 * dirs[..., 2]
+                + 0.2 * dirs[..., 0] * dirs[..., 1])[..., None] * np.array([1.0, 0.8, 0.6])
+    radiance = radiance.astype(np.float32)
+    bpy.ops.wm.read_homefile(use_empty=True)
+    scene = bpy.context.scene
+    img = bpy.data.images.new("env", 32, 16, alpha=True, float_buffer=True)
+    img.colorspace_settings.name = "Non-Color"
+    img.pixels.foreach_set(np.concatenate([radiance, np.ones((16, 32, 1), np.float32)],
+                                          2).ravel())  # rows bottom-first, as World's
+    world = bpy.data.worlds.new("W")
+    world.use_nodes = True
+    nodes = world.node_tree.nodes
+    env = nodes.new("ShaderNodeTexEnvironment")
+    env.image, env.interpolation = img, "Linear"
+    world.node_tree.links.new(env.outputs["Color"], nodes["Background"].inputs["Color"])
+    scene.world = world
+    cam = bpy.data.cameras.new("cam")
+    cam.angle = np.radians(100.0)
+    cam_ob = bpy.data.objects.new("cam", cam)
+    look = Vector((1.0, 1.0, 0.5)).normalized()
+    cam_ob.matrix_world = Matrix.Translation((0, 0, 0)) @ look.to_track_quat("-Z", "Y") \
+        .to_matrix().to_4x4()
+    scene.collection.objects.link(cam_ob)
+    scene.camera = cam_ob
+    r = scene.render
+    r.engine, r.resolution_x, r.resolution_y, r.resolution_percentage = "CYCLES", 16, 16, 100
+    scene.cycles.device, scene.cycles.samples = "CPU", 64
+    scene.cycles.use_denoising = scene.cycles.use_adaptive_sampling = False
+    scene.cycles.pixel_filter_type, scene.cycles.filter_width = "BOX", 0.01
+    r.image_settings.media_type = "MULTI_LAYER_IMAGE"
+    r.image_settings.color_depth = "32"
+    r.filepath = str(tmp_path / "env.exr")
+    bpy.ops.render.render(write_still=True)
+    got = exr.read_multilayer(tmp_path / "env.exr")["Combined"][..., :3]  # rows top-first
+    t = np.tan(0.5 * cam.angle)
+    c = (np.arange(16) + 0.5) / 16 * 2 - 1
+    x, y = np.meshgrid(c * t, -c * t)
+    rot = np.array(cam_ob.matrix_world.to_3x3())
+    rays = np.stack([x, y, -np.ones_like(x)], -1).reshape(-1, 3) @ rot.T
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    want = sky.lookup(World("w", radiance), rays).reshape(16, 16, 3)
+    np.testing.assert_allclose(got, want, rtol=0.02)
+    for wrong in (radiance[:, ::-1], radiance[::-1]):
+        off = sky.lookup(World("w", np.ascontiguousarray(wrong)), rays).reshape(16, 16, 3)
+        assert np.abs(got - off).max() > 0.1
