@@ -64,23 +64,34 @@ def sample(texture: Texture, uv) -> np.ndarray:
         raise ValueError(f"texture '{texture.name}': extension {texture.extension!r} is not "
                          f"one of {', '.join(EXTENSIONS)}")
     h, w = px.shape[:2]
+    flat = px.reshape(-1, 3)
     uv = np.asarray(uv, np.float64).reshape(-1, 2)
     uv = np.clip(np.nan_to_num(uv, nan=0.0, posinf=0.0, neginf=0.0), -1e6, 1e6)
     x, y = uv[:, 0] * w, uv[:, 1] * h
+    ext = texture.extension
     if texture.interpolation == "Closest":
-        ix, iy = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
-        return _read(px, ix, iy, texture.extension)
+        (cols, cok), (rows, rok) = _axis(np.floor(x), w, ext), _axis(np.floor(y), h, ext)
+        out = np.take(flat, rows * w + cols, axis=0)
+        if ext == "CLIP":
+            out[~(cok & rok)] = 0.0
+        return out
     ix, tx = _split(x - 0.5)
     iy, ty = _split(y - 0.5)
     if texture.interpolation == "Linear":
         taps, wx, wy = (0, 1), (1.0 - tx, tx), (1.0 - ty, ty)
     else:
         taps, wx, wy = (-1, 0, 1, 2), _bspline(tx), _bspline(ty)
-    out = np.zeros((uv.shape[0], 3), np.float64)
+    cols = [_axis(ix + a, w, ext) for a in taps]
+    out = np.zeros((uv.shape[0], 3), np.float32)
     for b, wyb in zip(taps, wy):
-        for a, wxa in zip(taps, wx):
-            out += (wxa * wyb)[:, None] * _read(px, ix + a, iy + b, texture.extension)
-    return out.astype(np.float32)
+        rows, rok = _axis(iy + b, h, ext)
+        rows = rows * w
+        for (c, cok), wxa in zip(cols, wx):
+            weight = (wxa * wyb).astype(np.float32)
+            if ext == "CLIP":  # texels outside the image read as 0
+                weight *= rok & cok
+            out += weight[:, None] * np.take(flat, rows + c, axis=0)
+    return out
 
 
 def _split(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -96,21 +107,17 @@ def _bspline(t: np.ndarray) -> tuple:
             ((-0.5 * t + 0.5) * t + 0.5) * t + 1.0 / 6.0, t * t * t / 6.0)
 
 
-def _wrap(i: np.ndarray, n: int, extension: str) -> np.ndarray:
+def _axis(i: np.ndarray, n: int, extension: str) -> tuple[np.ndarray, np.ndarray | None]:
+    """Texel indices ``i`` along an axis of ``n`` texels wrapped by ``extension`` (int64),
+    and for CLIP whether each lies inside the image."""
+    i = np.asarray(i).astype(np.int64)
     if extension == "REPEAT":
-        return np.mod(i, n)
+        return np.mod(i, n), None
     if extension == "MIRROR":  # Cycles' wrap_mirror: -1 -> 0, n -> n - 1
         m = np.abs(i + (i < 0)) % (2 * n)
-        return np.where(m >= n, 2 * n - m - 1, m)
-    return np.clip(i, 0, n - 1)  # EXTEND (and CLIP, whose outside texels are then zeroed)
-
-
-def _read(px: np.ndarray, ix: np.ndarray, iy: np.ndarray, extension: str) -> np.ndarray:
-    h, w = px.shape[:2]
-    out = px[_wrap(iy, h, extension), _wrap(ix, w, extension)]
-    if extension == "CLIP":
-        out = np.where(((ix >= 0) & (ix < w) & (iy >= 0) & (iy < h))[:, None], out, 0.0)
-    return out
+        return np.where(m >= n, 2 * n - m - 1, m), None
+    inside = (i >= 0) & (i < n) if extension == "CLIP" else None
+    return np.clip(i, 0, n - 1), inside  # EXTEND clamps; CLIP's outside texels read 0
 
 
 def mean(texture: Texture) -> np.ndarray:
