@@ -14,6 +14,7 @@ import numpy as np
 
 from . import emitters, propagation, sky
 from .geometry_volume import surfels
+from .scene import textures
 
 
 @dataclass
@@ -171,6 +172,9 @@ def propagate(engine, scene, src: Source, run, bounds, stats) -> list:
     t0 = time.perf_counter()
     pos, nrm, area, tri = cascade_surfels(scene.positions, chain)
     refl = scene.reflectance_per_triangle()[tri].astype(np.float64)
+    if engine.raster.surface is not None:  # the texture and corner colour at each surfel
+        refl *= engine.raster.surface.factor(
+            tri, textures.barycentric(scene.positions[tri], pos), gi=True)
     pos2, nrm2 = np.concatenate([pos, pos]), np.concatenate([nrm, -nrm])
     e = direct(engine, scene, bounds, pos2, nrm2, stats,
                material=src.material if src.kind == "emission" else -1,
