@@ -227,3 +227,25 @@ def test_compiled_soft_shadows_are_the_numpy_ones(variant):
     assert penumbra.mean() > 0.02  # the soft path is exercised
     np.testing.assert_allclose(got, want, rtol=1e-10, atol=1e-12 * want.max())
     np.testing.assert_allclose(vis, want_vis, rtol=1e-10, atol=1e-12)
+
+
+def test_a_box_side_under_a_wide_panel_is_not_shaded_by_its_own_box():
+    """A box's side whose plane has the panel's centre behind it still sees the part of the
+    panel in front of it: the rest of its own box (behind its plane) shades nothing."""
+    box = np.concatenate([quad((-0.5, -0.5, 1), (0.5, -0.5, 1), (0.5, 0.5, 1), (-0.5, 0.5, 1)),
+                          quad((0.5, -0.5, 0), (0.5, 0.5, 0), (0.5, 0.5, 1), (0.5, -0.5, 1)),
+                          quad((-3, -3, 0), (3, -3, 0), (3, 3, 0), (-3, 3, 0))])
+    light = Light("Panel", "AREA", light_matrix((0, 0, 2), (0, 0, -1)), power=POWER,
+                  size=(2.0, 2.0))
+    scene = make_scene(box, lights=[light], settings=GISettings())
+    eng = engine.Engine()
+    bounds = eng.upload(scene, engine.Stats())
+    shadow = eng.shadow_map(scene, light, bounds, 512)
+    z = np.linspace(0.3, 0.9, 7)
+    pos = np.c_[np.full(7, 0.5), np.zeros(7), z]
+    nrm = np.tile([1.0, 0.0, 0.0], (7, 1))
+    with jit.disabled():
+        vis = direct.visibility(shadow, pos, nrm)
+        e = direct.irradiance(light, pos, nrm)[:, 0]
+    assert (e > 0).all()  # the panel's part beyond x = 0.5 lights the side
+    assert vis.min() == 1.0

@@ -347,10 +347,9 @@ def _lookup(lp, mats, ortho, scale, depths, face_view, single, res, x, y, z,
         fy = ax * mat[0, 1] + ay * mat[1, 1] + az * mat[2, 1]
         fz = ax * mat[0, 2] + ay * mat[1, 2] + az * mat[2, 2]
         ln = np.sqrt(fx * fx + fy * fy + fz * fz)
-    num = nx * (qx - y0x) + ny * (qy - y0y) + nz * (qz - y0z)
-    den = nx * fx + ny * fy + nz * fz
-    t = num * ln / den if num * den > 0 else np.inf
-    return d, d < t - bias
+    h0 = nx * (y0x - qx) + ny * (y0y - qy) + nz * (y0z - qz)
+    den = (nx * fx + ny * fy + nz * fz) / ln
+    return d, h0 + d * den > bias * abs(den)
 
 
 @jit.kernel

@@ -140,9 +140,10 @@ def _strata(side: int, sa: np.ndarray, sb: np.ndarray, round_: bool):
 def _lookup(shadow: ShadowMap, x: np.ndarray, p_off: np.ndarray, n: np.ndarray,
             dist: np.ndarray, bias: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """For tap points x (N, 3): the map's depth at the texel each falls in (inf outside the
-    views) and whether it occludes the receiver: nearer, by ``bias``, than both the
-    receiver's distance ``dist`` and its own plane (through p_off, normal n) along that
-    texel's centre ray, so a wide filter finds no acne on the receiver's own surface."""
+    views) and whether it occludes the receiver: nearer than the receiver's distance
+    ``dist`` and, on that texel's centre ray, in front of the receiver's own plane (through
+    p_off, normal n), both by ``bias``: a wide filter finds no acne on the receiver's own
+    surface, and a surface behind its plane (the rest of its own box) shades nothing."""
     res = shadow.resolution
     light = shadow.light
     depth_out = np.full(x.shape[0], np.inf)
@@ -188,12 +189,14 @@ def _lookup(shadow: ShadowMap, x: np.ndarray, p_off: np.ndarray, n: np.ndarray,
             f = np.c_[uc * scale, vc * scale, -np.ones(sel.size)] @ rot
             length = np.sqrt(np.einsum("ij,ij->i", f, f))
         nn = n[sel]
-        num = np.einsum("ij,ij->i", nn, p_off[sel] - y0)
-        den = np.einsum("ij,ij->i", nn, f)
-        t = np.where(num * den > 0, num * length / np.where(den != 0, den, 1.0), np.inf)
+        h0 = np.einsum("ij,ij->i", nn, y0 - p_off[sel])
+        den = np.einsum("ij,ij->i", nn, f) / length
         d = depth[iy, ix].astype(np.float64)
         depth_out[sel] = np.where(ok, d, np.inf)
-        blocked[sel] = ok & (d < dist[sel] - bias[sel]) & (d < t - bias[sel])
+        near = ok & (d < dist[sel] - bias[sel])
+        # the occluder d along the ray: in front of the receiver's plane by the bias (behind
+        # it, it cannot stand between the receiver and any light it sees)
+        blocked[sel] = near & (h0 + np.where(near, d, 0.0) * den > bias[sel] * np.abs(den))
     return depth_out, blocked
 
 
