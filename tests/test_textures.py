@@ -3,6 +3,7 @@ tiny Cycles render), fitted to the texture budget, per pixel in the G-buffer, pe
 RSM, carried by the worker's scene files once per digest; untextured scenes take none of it."""
 
 import dataclasses
+import os
 
 import numpy as np
 import pytest
@@ -257,18 +258,6 @@ def test_white_texture_gives_the_untextured_passes(bounces):
                                    err_msg=name)
 
 
-def test_corner_albedo_for_the_overlay():
-    """The overlay's per-vertex albedo: albedo x the texture's mean x the corner colours."""
-    mats = [Material("tex", np.float32([0.5, 1.0, 1.0]), texture=CHECKER), Material("plain")]
-    cc = np.full((2, 3, 3), 0.5, np.float32)
-    got = tx.corner_albedo(mats, np.array([0, 1]), np.float32([[0.5, 1, 1], [0.8, 0.8, 0.8]]),
-                           cc)
-    mean = 0.5 * (RED + GREEN)
-    np.testing.assert_allclose(got[0], np.tile(0.5 * np.float32([0.5, 1, 1]) * mean, (3, 1)),
-                               rtol=1e-6)
-    np.testing.assert_allclose(got[1], np.full((3, 3), 0.4), rtol=1e-6)
-
-
 # --------------------------------------------------------------------------- worker
 
 
@@ -467,3 +456,113 @@ def test_checker_floor_from_blender_matches_cycles_diffuse_color(tmp_path):
             on_metal &= pad[1 + dy:49 + dy, 1 + dx:49 + dx]
     assert on_metal.sum() > 20
     assert color[on_metal].max() == 0.0 and ref[on_metal].max() < 1e-3
+
+
+OVERLAY_SCRIPT = r"""
+import sys
+import bpy, gpu
+import numpy as np
+import lpv_addon
+from lpv_addon.viewport import live, overlay
+from lpv_core.grid import Grid
+from lpv_core.scene import GISettings, textures as tx
+
+W = H = 64
+lpv_addon.register()
+r = bpy.context.scene.render
+r.engine, r.resolution_x, r.resolution_y = "BLENDER_WORKBENCH", 8, 8
+bpy.ops.render.render(write_still=False)  # Blender's GPU context, headless
+rng = np.random.default_rng(3)
+pixels = rng.uniform(0.05, 0.95, (4, 4, 3)).astype(np.float32)
+grid = Grid((-1.2, -1.2, -1.2), 0.3, 8)
+values = np.zeros((8, 8, 8, 3, 9), np.float32)
+values[..., 0] = 1.0  # uniform light: the same irradiance at every pixel
+combos = [(i, e) for i in tx.INTERPOLATIONS for e in tx.EXTENSIONS]
+tris, uvs, ids = [], [], []
+for k in range(16):  # a 4 x 4 grid of quads on z = 0, UVs -0.25 .. 1.25, one mode each
+    x0, y0 = -1.0 + 0.5 * (k % 4), -1.0 + 0.5 * (k // 4)
+    x1, y1 = x0 + 0.5, y0 + 0.5
+    tris += [[(x0, y0, 0), (x1, y0, 0), (x1, y1, 0)], [(x0, y0, 0), (x1, y1, 0), (x0, y1, 0)]]
+    a, b = -0.25, 1.25
+    uvs += [[(a, a), (b, a), (b, b)], [(a, a), (b, b), (a, b)]]
+    ids += [k, k]
+t = len(tris)
+
+def shot(textured):
+    geometry = {"positions": np.array(tris, np.float32),
+                "normals": np.tile(np.float32([0, 0, 1]), (t, 3, 1)),
+                "albedo": np.ones((t, 3), np.float32), "receiver": np.ones(t, bool)}
+    if textured:
+        geometry.update(texture=np.array(ids), uvs=np.array(uvs, np.float32), textures=[
+            tx.Texture("p", pixels, i, e, f"p-{i}-{e}") for i, e in combos])
+    live.STATE.serial += 1
+    result = live.LiveResult(serial=live.STATE.serial, grid=grid, values=values, per_light={},
+                             lights=[], settings=GISettings(), areas=[], geometry=geometry,
+                             visibility=None, gaps={grid: None})
+    view = np.eye(4)
+    view[2, 3] = -5.0
+    proj = np.diag([1.0, 1.0, -0.2, 1.0])
+    proj[2, 3] = -1.0
+    off = gpu.types.GPUOffScreen(W, H, format="RGBA32F")
+    with off.bind():
+        fb = gpu.state.active_framebuffer_get()
+        fb.clear(color=(0, 0, 0, 0), depth=1.0)
+        overlay.draw(view, proj, mode="INDIRECT", depth_prepass=True, current=result,
+                     previous=None)
+        buf = fb.read_color(0, 0, W, H, 4, 0, "FLOAT")
+    off.free()
+    buf.dimensions = W * H * 4
+    return np.array(buf.to_list(), np.float32).reshape(H, W, 4)[::-1, :, :3]
+
+plain = shot(False)
+textured = shot(True)
+shot(True)  # the next result, the same textures: not uploaded again
+held = (len(overlay._TEXTURES), overlay.UPLOADS[0])
+# what the live viewport hands the overlay for a core scene: textures per triangle, UVs,
+# albedo x corner colours per corner, the textures fitted once per digest
+from lpv_core.scene import Material, make_scene
+quad = np.array([[(0, 0, 0), (1, 0, 0), (1, 1, 0)], [(0, 0, 0), (1, 1, 0), (0, 1, 0)]])
+mats = [Material("t", np.float32([0.5, 0.5, 0.5]), texture=tx.Texture("p", pixels, digest="P")),
+        Material("plain")]
+core_scene = make_scene(quad, material_index=np.array([0, 1]), materials=mats,
+                        uvs=quad[..., :2], corner_colors=np.full((2, 3, 3), 0.5))
+geo, again = live._geometry(core_scene), live._geometry(core_scene)
+live_ok = (geo["texture"].tolist() == [0, -1] and geo["uvs"].shape == (2, 3, 2)
+           and np.allclose(geo["albedo"], [[[0.25] * 3] * 3, [[0.4] * 3] * 3])
+           and again["textures"][0] is geo["textures"][0]
+           and np.array_equal(geo["textures"][0].pixels, pixels))
+np.savez(sys.argv[1], plain=plain, textured=textured, pixels=pixels, held=held,
+         live_ok=live_ok)
+"""
+
+
+@pytest.mark.bpy
+def test_overlay_reads_the_textures_as_the_render_does(tmp_path):
+    """The overlay on other engines, drawn by Blender's gpu module (a child Blender process):
+    16 quads, one per interpolation and extension, UVs -0.25 .. 1.25, under uniform LPV light:
+    the textured image over the untextured one is textures.sample at each pixel centre's UV
+    (RGBA16F texels: within 2e-3), each texture uploaded once."""
+    import subprocess
+    import sys
+
+    pytest.importorskip("bpy")
+    from conftest import ROOT
+
+    out = tmp_path / "overlay.npz"
+    proc = subprocess.run([sys.executable, "-c", OVERLAY_SCRIPT, str(out)], cwd=ROOT,
+                          capture_output=True, text=True, timeout=300, check=False,
+                          env=dict(os.environ, PYTHONPATH=str(ROOT)))
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    res = np.load(out)
+    plain, textured = res["plain"], res["textured"]
+    assert plain.min() > 0 and res["held"].tolist() == [16, 16] and bool(res["live_ok"])
+    ratio = textured / plain
+    centre = -0.25 + 1.5 * (np.arange(16) + 0.5) / 16  # UV at each pixel centre of a quad
+    u, v = np.meshgrid(centre, centre)
+    for k, (interp, ext) in enumerate((i, e) for i in tx.INTERPOLATIONS for e in tx.EXTENSIONS):
+        gx, gy = k % 4, k // 4
+        got = ratio[64 - 16 * (gy + 1):64 - 16 * gy, 16 * gx:16 * (gx + 1)][::-1]
+        want = tx.sample(Texture("p", res["pixels"], interp, ext),
+                         np.stack([u.ravel(), v.ravel()], 1)).reshape(16, 16, 3)
+        err = np.abs(got - want)
+        assert err.max() < 2e-3, (interp, ext, err.max())

@@ -188,19 +188,28 @@ def extract(scene: bpy.types.Scene, depsgraph=None, overrides: dict | None = Non
                          render_visibility=False)
 
 
+_TEXTURES = core.scene.textures.Store()  # the overlay's textures, fitted once per digest
+
+
 def _geometry(scene) -> dict:
-    return {
+    """What the overlay draws: triangles, albedo (per corner with corner colours), receiver
+    flags and, where materials have textures, each triangle's texture, the UVs and the
+    textures fitted to the budget (the same textures.sample rules as the render's)."""
+    geo = {
         "positions": scene.positions.astype(np.float32),
         "normals": scene.normals.astype(np.float32),
-        # per corner where textures or corner colours vary it (the overlay's vertex colour)
-        "albedo": (scene.albedo_per_triangle().astype(np.float32)
-                   if scene.corner_colors is None and all(m.texture is None
-                                                          for m in scene.materials)
-                   else core.scene.textures.corner_albedo(
-                       scene.materials, scene.material_index, scene.albedo_per_triangle(),
-                       scene.corner_colors)),
+        "albedo": scene.albedo_per_triangle().astype(np.float32),
         "receiver": scene.flag("receiver"),
     }
+    lay = core.scene.textures.layout(scene.materials, scene.material_index, scene.uvs,
+                                     scene.corner_colors)
+    if lay is not None:
+        if lay.corner_colors is not None:
+            geo["albedo"] = geo["albedo"][:, None, :] * lay.corner_colors
+        if lay.textures:
+            geo["texture"], geo["uvs"] = lay.albedo_texture, lay.uvs
+            geo["textures"] = _TEXTURES.fitted(lay)
+    return geo
 
 
 def _recombine(scene, key: str, reasons: list[str], t0: float) -> LiveResult | None:

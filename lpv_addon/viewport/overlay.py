@@ -13,7 +13,7 @@ half a cell along the viewer-facing normal, moved out of the slabs an occluder's
 off (``lookup.sample_points`` / ``gap_corrected``; skipped for a cascade without gaps),
 trilinear over the 8 nearest cells (zero outside the grid) leaving out corners behind
 occluders and renormalising (``injection.visible_corners``), then the irradiance kernel of
-``sh.irradiance_weights`` / s^2; clamp at zero; cascades add up. Indirect radiance = irradiance / pi x albedo, 0 where ``gi_receiver`` is off (the albedo per corner: x corner colour x a texture's mean, textures.corner_albedo). Per-vertex
+``sh.irradiance_weights`` / s^2; clamp at zero; cascades add up. Indirect radiance = irradiance / pi x albedo, 0 where ``gi_receiver`` is off (the albedo: per corner x corner colour, x the material's texture per pixel as ``textures.sample`` reads it: one draw per texture, uploaded once per digest). Per-vertex
 shading would blur the LPV over large polygons (a Cornell wall is one quad). Transition areas are multiplied into the
 uploaded grids per cell (exact inside a box and far from it; the falloff is resolved at cell
 size), clip areas act in propagation and in the visibility already.
@@ -44,12 +44,18 @@ _HANDLES: list = []  # draw handler of SpaceView3D (at most one)
 # Fragment shader samplers, by slot (11 per draw of a cascade; OpenGL 4.3 guarantees 16).
 SAMPLERS = ("lpv_r", "lpv_g", "lpv_b", "vis_plus", "vis_minus", "lpv_r2", "lpv_g2", "lpv_b2",
             "lpv_c8", "gaps_plus", "gaps_minus")
+# The albedo texture of a textured batch (12th sampler) and its modes' codes in tex_mode.
+INTERPOLATION_CODES = {"Linear": 0, "Closest": 1, "Cubic": 2, "Smart": 2}
+EXTENSION_CODES = {"REPEAT": 0, "EXTEND": 1, "CLIP": 2, "MIRROR": 3}
+_TEXTURES: dict = {}  # digest -> GPUTexture of an albedo texture (uploaded once per digest)
+UPLOADS = [0]  # albedo textures uploaded so far
 
 VERTEX_SOURCE = """
 void main() {
     v_pos = pos;
     v_nrm = nor;
     v_col = col;
+    v_uv = uv;
     gl_Position = ModelViewProjectionMatrix * vec4(pos, 1.0);
 }
 """
@@ -62,6 +68,61 @@ const float K1 = 1.0233267079464885;      /* 2 pi / 3 Y1 */
 const float K2A = 0.8580855308097834;     /* pi / 4 Y2A */
 const float K2B = 0.2477079561003757;     /* pi / 4 Y2B */
 const float K2C = 0.4290427654048917;     /* pi / 4 Y2C */
+
+/* textures.sample in GLSL (Cycles' CPU image kernel) with texelFetch: codes in tex_mode */
+int wrap(int i, int n, int ext) {
+    if (ext == 0) {
+        i = i % n;
+        return i < 0 ? i + n : i;
+    }
+    if (ext == 3) {
+        int m = abs(i + (i < 0 ? 1 : 0)) % (2 * n);
+        return m >= n ? 2 * n - m - 1 : m;
+    }
+    return clamp(i, 0, n - 1);
+}
+
+float tap_weight(float t, int d, int interp) {
+    if (interp == 0) {
+        return d == 0 ? 1.0 - t : t;
+    }
+    if (d == -1) {
+        return ((-t / 6.0 + 0.5) * t - 0.5) * t + 1.0 / 6.0;
+    }
+    if (d == 0) {
+        return (0.5 * t - 1.0) * t * t + 2.0 / 3.0;
+    }
+    if (d == 1) {
+        return ((-0.5 * t + 0.5) * t + 0.5) * t + 1.0 / 6.0;
+    }
+    return t * t * t / 6.0;
+}
+
+vec3 albedo_texture(vec2 uv) {
+    ivec2 size = textureSize(albedo_tex, 0);
+    int interp = int(tex_mode.y);
+    int ext = int(tex_mode.z);
+    vec2 x = uv * vec2(size);
+    vec2 c = interp == 1 ? x : x - 0.5;
+    vec2 b = floor(c);
+    vec2 t = c - b;
+    ivec2 ib = ivec2(b);
+    int lo = interp == 2 ? -1 : 0;
+    int hi = interp == 0 ? 1 : (interp == 2 ? 2 : 0);
+    vec3 sum = vec3(0.0);
+    for (int dy = lo; dy <= hi; dy++) {
+        for (int dx = lo; dx <= hi; dx++) {
+            ivec2 i = ib + ivec2(dx, dy);
+            if (ext == 2 && (any(lessThan(i, ivec2(0))) || any(greaterThanEqual(i, size)))) {
+                continue;
+            }
+            float w = interp == 1 ? 1.0 : tap_weight(t.x, dx, interp) * tap_weight(t.y, dy, interp);
+            sum += w * texelFetch(albedo_tex, ivec2(wrap(i.x, size.x, ext),
+                                                    wrap(i.y, size.y, ext)), 0).rgb;
+        }
+    }
+    return sum;
+}
 
 void main() {
     int res = int(params.x);
@@ -155,7 +216,8 @@ void main() {
     vec3 e = vec3(dot(sr, w01) + dot(sr2, w2), dot(sg, w01) + dot(sg2, w2),
                   dot(sb, w01) + dot(sb2, w2)) + s8 * w8;
     e = max(e, vec3(0.0)) / (cell * cell);
-    vec3 radiance = e / PI * v_col.rgb * v_col.a;
+    vec3 albedo = tex_mode.x > 0.5 ? v_col.rgb * albedo_texture(v_uv) : v_col.rgb;
+    vec3 radiance = e / PI * albedo * v_col.a;
     FragColor = vec4(radiance * params.y, 1.0);
 }
 """
@@ -168,10 +230,12 @@ def _lpv_shader():
         iface.smooth("VEC3", "v_pos")
         iface.smooth("VEC3", "v_nrm")
         iface.smooth("VEC4", "v_col")
+        iface.smooth("VEC2", "v_uv")
         info = gpu.types.GPUShaderCreateInfo()
         info.vertex_in(0, "VEC3", "pos")
         info.vertex_in(1, "VEC3", "nor")
         info.vertex_in(2, "VEC4", "col")
+        info.vertex_in(3, "VEC2", "uv")
         info.vertex_out(iface)
         info.push_constant("MAT4", "ModelViewProjectionMatrix")
         info.push_constant("VEC4", "grid")  # origin xyz, cell size
@@ -180,8 +244,10 @@ def _lpv_shader():
         info.push_constant("VEC4", "view_dir")  # view direction (orthographic views)
         info.push_constant("FLOAT", "nudge")  # deferred.toward_viewer's distance
         info.push_constant("FLOAT", "use_gaps")  # 1: move sample points (gap_corrected)
+        info.push_constant("VEC4", "tex_mode")  # textured, interpolation, extension codes
         for slot, name in enumerate(SAMPLERS):
             info.sampler(slot, "FLOAT_3D", name)
+        info.sampler(len(SAMPLERS), "FLOAT_2D", "albedo_tex")
         info.fragment_out(0, "VEC4", "FragColor")
         info.vertex_source(VERTEX_SOURCE)
         info.fragment_source(FRAGMENT_SOURCE)
@@ -262,16 +328,38 @@ def _resource(key, make):
     return res
 
 
-def _geometry_batch(result):
+def _geometry_batches(result) -> list:
+    """(batch, texture or None) per albedo texture of the result's geometry (live._geometry:
+    "texture" per triangle, -1 none, into "textures"; "uvs" per corner), untextured first."""
     geo = result.geometry
     t = geo["positions"].shape[0]
-    pos = geo["positions"].reshape(-1, 3)
-    nrm = geo["normals"].reshape(-1, 3)
     col = np.empty((t, 3, 4), np.float32)
     col[..., :3] = np.asarray(geo["albedo"], np.float32).reshape(t, -1, 3)  # (T,3) or (T,3,3)
     col[..., 3] = np.asarray(geo["receiver"], np.float32)[:, None]
-    return batch_for_shader(_lpv_shader(), "TRIS", {"pos": _c(pos, 3), "nor": _c(nrm, 3),
-                                                    "col": _c(col, 4)})
+    ids = np.asarray(geo.get("texture", np.full(t, -1)), np.int64)
+    uvs = geo.get("uvs")
+    uvs = np.zeros((t, 3, 2), np.float32) if uvs is None else np.asarray(uvs, np.float32)
+    out = []
+    for k in np.unique(ids):
+        sel = ids == k
+        attrs = {"pos": _c(geo["positions"][sel], 3), "nor": _c(geo["normals"][sel], 3),
+                 "col": _c(col[sel], 4), "uv": _c(uvs[sel], 2)}
+        out.append((batch_for_shader(_lpv_shader(), "TRIS", attrs),
+                    None if k < 0 else geo["textures"][k]))
+    return out
+
+
+def _albedo_texture(texture):
+    """The GPU copy (RGBA16F, rows bottom-first like Image.pixels) of a textures.Texture."""
+    gtex = _TEXTURES.get(texture.digest)
+    if gtex is None:
+        h, w = texture.pixels.shape[:2]
+        rgba = np.ones((h, w, 4), np.float32)
+        rgba[..., :3] = texture.pixels
+        gtex = _TEXTURES[texture.digest] = gpu.types.GPUTexture(
+            (w, h), format="RGBA16F", data=gpu.types.Buffer("FLOAT", h * w * 4, rgba.ravel()))
+        UPLOADS[0] += 1
+    return gtex
 
 
 def levels(result) -> list:
@@ -293,7 +381,10 @@ def _result_resources(result):
                         "gaps": gap_textures(grid, gaps.get(grid))})
         ones = _texture((1, 1, 1), "RGBA16F", np.ones(4, np.float32))
         zeros = _texture((1, 1, 1), "RGBA32F", np.zeros(4, np.float32))  # no slabs
-        return {"levels": out, "ones": ones, "zeros": zeros, "batch": _geometry_batch(result)}
+        white = gpu.types.GPUTexture((1, 1), format="RGBA16F",
+                                     data=gpu.types.Buffer("FLOAT", 4, [1.0] * 4))
+        return {"levels": out, "ones": ones, "zeros": zeros, "white": white,
+                "batches": _geometry_batches(result)}
 
     return _resource(("result", result.serial), make)
 
@@ -304,14 +395,23 @@ def _prune(keep: set) -> None:
             del _RESOURCES[key]
 
 
+def _prune_textures(results) -> None:
+    """Drop the albedo textures no drawn result uses."""
+    used = {t.digest for r in results if r is not None
+            for t in (r.geometry.get("textures") or [])}
+    for digest in [d for d in _TEXTURES if d not in used]:
+        del _TEXTURES[digest]
+
+
 def free_resources() -> None:
     """Drop every GPU object we made (textures, batches, shaders)."""
     _RESOURCES.clear()
+    _TEXTURES.clear()
     _SHADERS.clear()
 
 
 def resource_count() -> int:
-    return len(_RESOURCES) + len(_SHADERS)
+    return len(_RESOURCES) + len(_SHADERS) + len(_TEXTURES)
 
 
 # -------------------------------------------------------------------------------- drawing
@@ -352,7 +452,16 @@ def _draw_indirect(result, mvp: Matrix, eye4, view_dir4, weight: float,
         g_plus, g_minus = gaps if gaps is not None else (res["zeros"], res["zeros"])
         shader.uniform_sampler("gaps_plus", g_plus)
         shader.uniform_sampler("gaps_minus", g_minus)
-        res["batch"].draw(shader)
+        for batch, texture in res["batches"]:
+            if texture is None:
+                shader.uniform_float("tex_mode", (0.0, 0.0, 0.0, 0.0))
+                shader.uniform_sampler("albedo_tex", res["white"])
+            else:
+                shader.uniform_float("tex_mode", (
+                    1.0, INTERPOLATION_CODES[texture.interpolation],
+                    EXTENSION_CODES[texture.extension], 0.0))
+                shader.uniform_sampler("albedo_tex", _albedo_texture(texture))
+            batch.draw(shader)
 
 
 def _depth_prepass(result, mvp: Matrix) -> None:
@@ -526,6 +635,7 @@ def draw(view, projection, mode: str = "ADD", fade: float = 1.0, exposure: float
     view_dir = -inv.col[2].xyz
     view_dir4 = (*view_dir.normalized(), 0.0)
     _prune({r.serial for r in (current, previous) if r is not None})
+    _prune_textures((current, previous))
     try:
         gpu.state.depth_test_set("LESS_EQUAL")
         gpu.state.depth_mask_set(False)

@@ -306,28 +306,3 @@ def barycentric(corners: np.ndarray, points: np.ndarray) -> np.ndarray:
     det = d11 * d22 - d12 * d12
     det = np.where(det > 0, det, 1.0)
     return np.stack([(d22 * p1 - d12 * p2) / det, (d11 * p2 - d12 * p1) / det], axis=1)
-
-
-_MEANS: dict = {}  # digest -> mean colour (corner_albedo: textures unchanged between updates)
-
-
-def corner_albedo(materials: list, material_index, albedo: np.ndarray,
-                  corner_colors=None) -> np.ndarray:
-    """Per-corner albedo (T, 3, 3) float32 for views that shade per vertex (the overlay on
-    other engines): the per-triangle ``albedo`` (T, 3) x each textured material's mean
-    texture colour x the corner colours; the render's G-buffer reads the texture per point."""
-    out = np.repeat(np.asarray(albedo, np.float32)[:, None, :], 3, axis=1)
-    scale = np.ones((len(materials) + 1, 3), np.float32)
-    for k, m in enumerate(materials):
-        if m.texture is not None:
-            d = digest_of(m.texture)
-            if d not in _MEANS:
-                if len(_MEANS) > 4096:
-                    _MEANS.clear()
-                _MEANS[d] = mean(m.texture)
-            scale[k] = _MEANS[d]
-    if len(materials) and (scale != 1).any():
-        out *= scale[np.asarray(material_index, np.int64)][:, None, :]
-    if corner_colors is not None:
-        out *= np.asarray(corner_colors, np.float32)
-    return out
