@@ -11,13 +11,17 @@ from __future__ import annotations
 
 import numpy as np
 
+from .kernels import sky as _compiled
 from .propagation.quadrature import quadrature_directions
+from .runtime import jit
 from .scene.model import Light
 from .scene.world import World
 
-# The DOM transport's own count: 64 cells of 4 pi / 64 sr (~29 deg wide); the banding it leaves
-# in contact shadows is measured in tests/test_sources.py and docs/decisions.md.
+# The GI's directions: the DOM transport's own count, 64 cells of 4 pi / 64 sr (~29 deg wide);
+# the pixels' direct light takes 128, whose banding through a skylight is finer
+# (docs/decisions.md: HDR-FLIP of Combined 0.40 with 64, 0.28 with 128, 0.22 with 256).
 DIRECTIONS = 64
+RENDER_DIRECTIONS = 128
 SHADOW_RESOLUTION = 256  # texels per side of each direction's map (64 maps: 16 MiB)
 MAX_MAP_SIDE = 512  # the map is box-averaged down to at most this many columns first
 MIN_MAP_SIDE = 64  # and sampled at least this finely (a 1x1 uniform World included)
@@ -115,6 +119,11 @@ def irradiance(directions: np.ndarray, weights: np.ndarray, radiance: np.ndarray
     ``maps`` the shadow maps of ``suns`` (None: unoccluded)."""
     from .render import direct
 
+    if jit.enabled() and maps and all(m is not None for m in maps) and len(positions):
+        views = np.array([m.views[0].view for m in maps], np.float64)
+        half = np.array([m.views[0].half_extent for m in maps], np.float64)
+        return _compiled.irradiance(directions, weights, radiance, views, half,
+                                    _stacked(maps), positions, normals)
     pos = np.asarray(positions, np.float64)
     nrm = np.asarray(normals, np.float64)
     cos = np.maximum(nrm @ np.asarray(directions, np.float64).T, 0.0)  # (M, K)
@@ -128,3 +137,13 @@ def irradiance(directions: np.ndarray, weights: np.ndarray, radiance: np.ndarray
                                                                       shadow)[:, 0]
         e += np.multiply.outer(weights[k] * vis_cos, radiance[k])
     return e * (np.pi / np.maximum(den, 1e-300))[:, None]
+
+
+_STACK: list = []  # [(maps list, their depths (K, R, R) float32)]: the last maps stacked
+
+
+def _stacked(maps: list) -> np.ndarray:
+    """The maps' depths as one (K, R, R) float32 array, kept for the same list of maps."""
+    if not _STACK or _STACK[0][0] is not maps:
+        _STACK[:] = [(maps, np.stack([m.stacked()[0] for m in maps]))]
+    return _STACK[0][1]

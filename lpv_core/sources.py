@@ -66,45 +66,49 @@ def gi_sources(scene, refl: str, stats) -> list[Source]:
 
 class SourceMaps:
     """Shadow maps of the World's directions and of the emitter clusters, for one geometry and
-    LPV box (Engine.sources_maps)."""
+    LPV box (Engine.source_maps)."""
 
     def __init__(self):
         self.key = None
-        self.world = None  # (world digest, directions, weights, radiance)
-        self.world_maps: list = []
+        self.world: dict = {}  # K -> (world digest, directions, weights, radiance, maps)
         self.clusters = None  # (emission digest, [(Cluster, ShadowMap)])
 
     def reset(self, key) -> None:
         if key != self.key:
-            self.key, self.world_maps, self.clusters = key, [], None
+            self.key, self.world, self.clusters = key, {}, None
 
 
-def maps(engine, scene, bounds, stats) -> SourceMaps:
-    """engine's SourceMaps made current for ``scene`` in ``bounds``: the World's directions
-    and maps and the clusters' cube maps (the scene without emitters: they do not shadow
-    themselves) rendered when missing; stats.info["sources"] names what each approximates."""
+def maps(engine, scene, bounds, stats, k: int | None = None) -> SourceMaps:
+    """engine's SourceMaps made current for ``scene`` in ``bounds``: the World's ``k``
+    directions (sky.DIRECTIONS: the GI's; RENDER_DIRECTIONS: the pixels') and their maps, and
+    the clusters' cube maps (the scene without emitters: they do not shadow themselves),
+    rendered when missing; stats.info["sources"] names what each approximates."""
     from .render import direct
 
     sm = engine.source_maps
     lo, hi = (np.asarray(b, np.float64) for b in bounds)
     b = engine._bounds
-    sm.reset((b.geometry if b is not None else _digest(scene.positions), lo.tobytes(), hi.tobytes()))
+    geo = b.geometry if b is not None else _digest(scene.positions)
+    sm.reset((geo, lo.tobytes(), hi.tobytes()))
     info = stats.info.setdefault("sources", {})
     t0 = time.perf_counter()
-    world = scene.world
+    world, k = scene.world, k or sky.DIRECTIONS
     if not sky.lit(world):
         digest = world.digest or _digest(world.radiance)
-        if sm.world is None or sm.world[0] != digest:
-            sm.world = (digest, *sky.cells(world))
-        if not sm.world_maps:  # windows on the LPV box, depth over all the geometry (what
-            # stands outside the box, a closed space's walls, shades it from the sky too)
-            whole = scene.bounds()
-            sm.world_maps = [direct.render_shadow_map(engine.raster, s, whole,
-                                                      sky.SHADOW_RESOLUTION, (lo, hi))
-                             for s in sky.suns(sm.world[1])]
-        info[f"World '{world.name}'"] = (f"{sky.DIRECTIONS} directions of {4 * np.pi / sky.DIRECTIONS:.3f} sr, "
-                       "radiance averaged over each; sky visibility from "
-                       f"{sky.SHADOW_RESOLUTION}^2 orthographic shadow maps")
+        if k not in sm.world or sm.world[k][0] != digest:
+            cells = sky.cells(world, k)
+            old = sm.world.get(k)  # the maps depend on the geometry alone
+            # windows on the LPV box, depth over all the geometry (what stands outside the
+            # box, a closed space's walls, shades it from the sky too)
+            made = old[4] if old is not None else [
+                direct.render_shadow_map(engine.raster, s, scene.bounds(),
+                                         sky.SHADOW_RESOLUTION, (lo, hi))
+                for s in sky.suns(cells[0])]
+            sm.world[k] = (digest, *cells, made)
+        info[f"World '{world.name}'"] = (
+            f"{' and '.join(str(n) for n in sorted(sm.world))} directions (GI, pixels), "
+            "radiance averaged over each one's cell; sky visibility from "
+            f"{sky.SHADOW_RESOLUTION}^2 orthographic shadow maps")
     mats = emitters.emissive_materials(scene)
     if mats:
         table = np.array([scene.materials[i].emission for i in mats], np.float64)
@@ -130,15 +134,17 @@ def maps(engine, scene, bounds, stats) -> SourceMaps:
 
 
 def direct(engine, scene, bounds, positions, normals, stats, material: int | None = None,
-           world: bool = True) -> np.ndarray | None:
-    """Direct irradiance (M, 3) W/m^2 of the World (``world``) and the emitters (of
-    ``material`` only, when given) at receivers; None when none of them sends light."""
+           world: bool = True, gi: bool = False) -> np.ndarray | None:
+    """Direct irradiance (M, 3) W/m^2 of the World (``world``; over the GI's directions with
+    ``gi``, else the pixels') and the emitters (of ``material`` only, when given) at
+    receivers; None when none of them sends light."""
     if sky.lit(scene.world) and not emitters.emissive_materials(scene):
         return None
-    sm = maps(engine, scene, bounds, stats)
+    k = sky.DIRECTIONS if gi else sky.RENDER_DIRECTIONS
+    sm = maps(engine, scene, bounds, stats, k)
     e = None
-    if world and sm.world_maps:
-        e = sky.irradiance(*sm.world[1:], sm.world_maps, positions, normals)
+    if world and k in sm.world:
+        e = sky.irradiance(*sm.world[k][1:], positions, normals)
     for c, shadow in (sm.clusters[1] if sm.clusters else []):
         if material is None or c.material == material:
             part = emitters.irradiance(c, shadow, positions, normals)
@@ -168,7 +174,7 @@ def propagate(engine, scene, src: Source, run, bounds, stats) -> list:
     cascade_surfels) lit by its direct light, their flux E x area x GI reflectance injected
     and propagated through ``run`` (Engine._source caches them)."""
     chain = run.chain
-    maps(engine, scene, bounds, stats)  # timed on its own (source_maps)
+    maps(engine, scene, bounds, stats, sky.DIRECTIONS)  # timed on its own (source_maps)
     t0 = time.perf_counter()
     pos, nrm, area, tri = cascade_surfels(scene.positions, chain)
     refl = scene.reflectance_per_triangle()[tri].astype(np.float64)
@@ -178,7 +184,7 @@ def propagate(engine, scene, src: Source, run, bounds, stats) -> list:
     pos2, nrm2 = np.concatenate([pos, pos]), np.concatenate([nrm, -nrm])
     e = direct(engine, scene, bounds, pos2, nrm2, stats,
                material=src.material if src.kind == "emission" else -1,
-               world=src.kind == "world")
+               world=src.kind == "world", gi=True)
     flux = e * np.concatenate([area, area])[:, None] * np.concatenate([refl, refl])
     # Light leaving the LPV box outward meets nothing (the box bounds the geometry, or the
     # closed space around the camera): the side a surfel lights must face into the box (a

@@ -82,15 +82,16 @@ def sky_fraction(x, h):
 
 def test_floor_beside_a_long_wall_gets_the_visible_skys_view_factor():
     """Floor points 0.5..8 m from a 4 m wall 40 m long (the wall's ends change the fraction by
-    < 0.1 %): E / (pi L) within 9 % of sky_fraction at each point (the 64 directions' banding:
-    up to 8.3 % measured, docs/decisions.md) and within 2 % over the points' mean (1.6 %)."""
+    < 0.1 %): the pixels' E / (pi L) within 5 % of sky_fraction at each point (the 128
+    directions' banding and the maps' bias: up to 4.3 % measured, docs/decisions.md) and within
+    3 % over the points' mean (2.5 %)."""
     x = np.array([0.5, 1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 8.0])
     scene = make_scene(floor_and_wall(), materials=[Material("grey")], lights=[],
                        camera=camera([0, -12, 6], [0, -3, 0]), world=uniform())
     e = direct_at(engine.Engine(), scene, np.c_[0.3 * x, -x, np.zeros_like(x)])
     got, want = e[:, 0] / (np.pi * L), sky_fraction(x, 4.0)
-    np.testing.assert_allclose(got, want, rtol=0.09)
-    assert abs(got.mean() / want.mean() - 1.0) < 0.02
+    np.testing.assert_allclose(got, want, rtol=0.05)
+    assert abs(got.mean() / want.mean() - 1.0) < 0.03
 
 
 def rectangle_factor(a, b, c):
@@ -367,3 +368,32 @@ def test_world_map_convention_matches_cycles_environment_texture(tmp_path):
     for wrong in (radiance[:, ::-1], radiance[::-1]):
         off = sky.lookup(World("w", np.ascontiguousarray(wrong)), rays).reshape(16, 16, 3)
         assert np.abs(got - off).max() > 0.1
+
+
+def test_compiled_sky_irradiance_is_the_numpy_reference():
+    """kernels/sky.py against sky.irradiance's numpy loop (render/direct.py's hard shadow test
+    per direction) on floor and wall points, lit and in the wall's shadow, to rounding."""
+    from lpv_core.runtime import jit
+
+    if not jit.enabled():
+        pytest.skip("numba is not installed")
+    scene = make_scene(floor_and_wall(h=3.0, half=6.0), materials=[Material("grey")], lights=[],
+                       camera=camera([0, -8, 2], [0, 0, 1.5]),
+                       world=World("w", np.random.default_rng(3).random((8, 16, 3))
+                                   .astype(np.float32)))
+    eng = engine.Engine()
+    eng.update(scene)
+    sm = sources.maps(eng, scene, eng.lpv_bounds(scene), engine.Stats())
+    rng = np.random.default_rng(4)
+    pts = np.r_[np.c_[rng.uniform(-5, 5, (300, 2)), np.zeros(300)],
+                np.c_[rng.uniform(-5, 5, 300), np.zeros(300), rng.uniform(0, 3, 300)]]
+    nrm = np.r_[np.tile([0, 0, 1.0], (300, 1)), np.tile([0, -1.0, 0], (300, 1))]
+    world = sm.world[sky.DIRECTIONS][1:]
+    got = sky.irradiance(*world, pts, nrm)
+    jit.switch(False)
+    try:
+        want = sky.irradiance(*world, pts, nrm)
+    finally:
+        jit.switch(True)
+    assert (want > 0).all() and (want[:300, 0] < want[:300, 0].max() * 0.9).any()
+    np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12)
