@@ -211,6 +211,21 @@ def test_environment_mapping_rotation_about_z_matches_cycles(fresh):
         assert s.world.radiance[r, c] == pytest.approx(seen, rel=0.03, abs=3e-3), (c, r)
 
 
+def test_mirror_ball_projection_matches_cycles(fresh):
+    """A smooth 16x16 mirror-ball image, bilinear in both: the map's texels along their
+    directions are what Cycles shows there."""
+    u = (np.arange(16) + 0.5) / 16
+    px = np.stack([np.add.outer(u, 0 * u), np.add.outer(0 * u, u), np.full((16, 16), 0.5)], -1)
+    world = _env_world(px, True)
+    env = next(n for n in world.node_tree.nodes if n.bl_idname == "ShaderNodeTexEnvironment")
+    env.projection, env.interpolation = "MIRROR_BALL", "Linear"
+    s = extract()
+    h, w = s.world.radiance.shape[:2]
+    for c, r in ((3, 2), (8, 5), (12, 4), (1, 6)):
+        seen = cycles_view(texel_direction(c, r, w, h))
+        assert s.world.radiance[r, c] == pytest.approx(seen, rel=0.03, abs=3e-3), (c, r)
+
+
 def test_missing_image_is_magenta_and_reported(fresh):
     world, bg = new_world()
     env = world.node_tree.nodes.new("ShaderNodeTexEnvironment")
