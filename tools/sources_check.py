@@ -63,10 +63,30 @@ def _manifest_seconds(cache: Path, exr: Path) -> float | None:
         data = json.loads((cache / "references.json").read_text())
     except (OSError, ValueError):
         return None
-    return next((e.get("seconds") for e in data.values() if e.get("exr") == exr.name), None)
+    times = [e["seconds"] for e in data.values() if e.get("exr") == exr.name and e.get("seconds")]
+    return max(times) if times else None
 
 
-def check_scene(name: str, cache: Path, repeats: int) -> dict:
+def save_comparison(path: Path, ref: dict, test: dict) -> str:
+    """A PNG: Cycles (top) and LPV (bottom); Diffuse Direct, the indirect term and Combined,
+    each pair on one exposure (Cycles' 99th percentile), sRGB."""
+    from PIL import Image
+
+    from lpv_core.render.error import indirect_term
+
+    rows = []
+    for passes in (ref, test):
+        rows.append([np.asarray(passes["Diffuse Direct"])[..., :3], indirect_term(passes),
+                     np.asarray(passes["Combined"])[..., :3]])
+    white = [max(float(np.percentile(img, 99)), 1e-6) for img in rows[0]]
+    tiles = [np.concatenate([np.clip(np.nan_to_num(img) / w, 0, 1) ** (1 / 2.2)
+                             for img, w in zip(r, white, strict=True)], 1) for r in rows]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray((np.concatenate(tiles, 0) * 255).astype(np.uint8)).save(path)
+    return path.name
+
+
+def check_scene(name: str, cache: Path, repeats: int, images: Path | None = None) -> dict:
     """Reference, LPV run and figures of one scene."""
     os.environ.setdefault("BLENDER_USER_RESOURCES", tempfile.mkdtemp(prefix="lpv_sources_"))
     import bpy
@@ -101,6 +121,8 @@ def check_scene(name: str, cache: Path, repeats: int) -> dict:
         "world": None if core_scene.world is None else list(core_scene.world.radiance.shape),
         "approximated": list(core_scene.approximated),
     }
+    if images is not None:
+        row["image"] = save_comparison(images / f"sources_{name}.png", ref, test)
     row["direct_ok"] = abs(row["direct_ratio"] - 1.0) <= DIRECT_TOLERANCE
     row["indirect_ok"] = row["indirect"] <= INDIRECT_LIMIT[kind]
     return row
@@ -150,6 +172,9 @@ def write(rows: list[dict], out: Path, argv: list[str]) -> None:
         lines.append(f"- **{r['scene']}**: lights {', '.join(r['lights']) or 'none'}; World "
                      f"map {r['world'] or 'none'}; approximated: "
                      f"{'; '.join(r['approximated']) or 'nothing'}.")
+        if r.get("image"):
+            lines += ["", (f"![{r['scene']}: Cycles (top), LPV (bottom); Diffuse Direct, "
+                      f"indirect, Combined]({r['image']})"), ""]
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text("\n".join(lines) + "\n")
 
@@ -173,7 +198,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"[sources_check] {name}: no such scene (yet); skipped", file=sys.stderr)
             continue
         try:
-            rows.append(check_scene(name, args.cache.resolve(), args.repeats))
+            rows.append(check_scene(name, args.cache.resolve(), args.repeats,
+                                    None if args.no_write else args.out.parent))
         except Exception as exc:  # noqa: BLE001 - a failing scene is reported, others still run
             rows.append({"scene": name, "error": f"{type(exc).__name__}: {exc}"[:300]})
         print("\n".join(table(rows[-1:])[2:]), flush=True)
