@@ -29,6 +29,8 @@ class Cluster:
     radiance: np.ndarray  # (3,) float64
     centre: np.ndarray
     radius: float
+    side: int = 0  # +1 / -1: emits only along / against ``normal`` (its other side capped)
+    normal: np.ndarray | None = None  # area-weighted mean winding normal (unit), or None
 
     def light(self) -> Light:
         """The POINT light whose cube shadow map gives the cluster's visibility (radius: its
@@ -84,17 +86,53 @@ def clusters(scene: Scene, diagonal: float) -> list[Cluster]:
         owner = (scene.object_names[o] if 0 <= o < len(scene.object_names) else "")
         name = f"'{scene.materials[mi].name}'" + (f" on '{owner}'" if owner else "") + \
             f" #{n}"
+        vec = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]).sum(0)
+        size = float(np.linalg.norm(vec))
+        normal = vec / size if size > 0.5 * 2 * area.sum() else None  # a flat-ish cluster
         out.append(Cluster(name, mi, tri, corners,
-                           np.asarray(scene.materials[mi].emission, np.float64), centre, radius))
+                           np.asarray(scene.materials[mi].emission, np.float64), centre, radius,
+                           normal=normal))
     return out
 
 
+CAPPED_SHARE = 0.9  # of a side's cosine-weighted view closed within the cluster's radius
+
+
+def capped_side(cluster: Cluster, shadow) -> int:
+    """+1 / -1 when the side of a flat cluster against / along its normal is covered, within
+    its radius, over CAPPED_SHARE of that side's cosine-weighted view in its cube ``shadow`` (a
+    luminaire's housing, a wall behind a screen): the cluster then emits only from the other
+    side (0: both), since light under the cap stays under it and the grid cannot hold it."""
+    from .scene.lights import texel_rays
+
+    if cluster.normal is None or shadow is None:
+        return 0
+    res, step = shadow.resolution, max(1, shadow.resolution // 64)
+    rows, cols = np.meshgrid(np.arange(0, res, step), np.arange(0, res, step), indexing="ij")
+    near, total = np.zeros(2), np.zeros(2)
+    for view, depth in zip(shadow.views, shadow.depths):
+        dirs, solid = texel_rays(view, rows.ravel(), cols.ravel(), res, res)
+        c = dirs @ cluster.normal
+        w = solid * np.abs(c) * step * step
+        closed = depth[rows.ravel(), cols.ravel()] < cluster.radius
+        for i, sel in enumerate((c > 0, c < 0)):
+            total[i] += w[sel].sum()
+            near[i] += w[sel & closed].sum()
+    share = near / np.maximum(total, 1e-300)
+    if share[1] >= CAPPED_SHARE > share[0]:
+        return 1
+    if share[0] >= CAPPED_SHARE > share[1]:
+        return -1
+    return 0
+
+
 def triangle_irradiance(corners: np.ndarray, positions: np.ndarray,
-                        normals: np.ndarray) -> np.ndarray:
+                        normals: np.ndarray, side: int = 0) -> np.ndarray:
     """(M,) irradiance at receivers (M, 3) with unit normals from unit-radiance triangles
     (T, 3, 3), summed: E = 1/2 |sum_edges theta_e n.(a x b)/|a x b||, Lambert's contour
     integral over each triangle clipped to the receiver's upper half-space (the clipped
-    polygon's edge along the horizon included)."""
+    polygon's edge along the horizon included); ``side`` +1 / -1: only receivers in front of
+    / behind each triangle's winding normal."""
     p = np.asarray(positions, np.float64)
     n = np.asarray(normals, np.float64)
     total = np.zeros(p.shape[0])
@@ -120,6 +158,9 @@ def triangle_irradiance(corners: np.ndarray, positions: np.ndarray,
             x_in = np.where(entering[:, None], x, x_in)
             cut |= leaving
         acc += np.where(cut, _edge(x_out, x_in, n), 0.0)
+        if side:
+            nt = np.cross(tri[1] - tri[0], tri[2] - tri[0])
+            acc = np.where(side * ((p - tri[0]) @ nt) > 0, acc, 0.0)
         total += 0.5 * np.abs(acc)
     return total
 
@@ -139,7 +180,7 @@ def irradiance(cluster: Cluster, shadow, positions: np.ndarray,
     visibility of its centre in ``shadow`` (a direct.ShadowMap, None: unoccluded)."""
     from .render import direct
 
-    e = triangle_irradiance(cluster.corners, positions, normals)
+    e = triangle_irradiance(cluster.corners, positions, normals, cluster.side)
     if shadow is not None:
         sel = np.nonzero(e > 0)[0]
         if sel.size:

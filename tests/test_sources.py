@@ -397,3 +397,31 @@ def test_compiled_sky_irradiance_is_the_numpy_reference():
         jit.switch(True)
     assert (want > 0).all() and (want[:300, 0] < want[:300, 0].max() * 0.9).any()
     np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12)
+
+
+def test_an_emitter_whose_back_is_capped_emits_from_its_front_only():
+    """A panel as the front face of a 3 cm box 1 mm under a ceiling (a luminaire, as
+    tools/scenes.py's panel_room): its back's light stays in the box, so the ceiling above it
+    gets none (the shadow map's bias cannot resolve the 1 mm); a lone panel lights both
+    sides, as Cycles' mesh lights do."""
+    lone = panel_room(1.5)
+    eng = engine.Engine()
+    above = direct_at(eng, lone, [[0.0, 0.0, 2.5]], normal=(0, 0, -1.0))[0, 0]
+    assert above > 0 and all(c.side == 0 for c, _ in eng.source_maps.clusters[1])
+    floor = quad([-3, -3, 0], [3, -3, 0], [3, 3, 0], [-3, 3, 0])
+    ceiling = quad([-3, -3, 3.0], [3, -3, 3.0], [3, 3, 3.0], [-3, 3, 3.0])
+    housing = box_triangles(np.array([-0.5, -0.5, 2.97]), np.array([0.5, 0.5, 2.999]))
+    front = quad([-0.5, -0.5, 2.9699], [0.5, -0.5, 2.9699], [0.5, 0.5, 2.9699],
+                 [-0.5, 0.5, 2.9699])[:, ::-1]  # winding normal down
+    tris = np.concatenate([floor, ceiling, housing, front])
+    mi = np.r_[np.zeros(len(tris) - 2, int), [1, 1]]
+    mats = [Material("grey"), Material("panel", albedo=np.zeros(3, np.float32),
+                                      emission=np.full(3, E, np.float32))]
+    scene = make_scene(tris, material_index=mi, materials=mats, lights=[],
+                       camera=camera([0, -2.5, 1.5], [0, 0, 1.5]))
+    eng = engine.Engine()
+    pts = np.array([[0.2, 0.1, 3.0], [0.7, 0.0, 3.0]])
+    e_ceiling = direct_at(eng, scene, pts, normal=(0, 0, -1.0))[:, 0]
+    e_floor = direct_at(eng, scene, [[0.0, 0.0, 0.0]])[0, 0]
+    assert all(c.side == 1 for c, _ in eng.source_maps.clusters[1])  # along its normal: down
+    assert e_ceiling.max() == 0 and e_floor > 0.1 * E
