@@ -8,7 +8,7 @@ import textwrap
 
 import bpy
 
-from .render.frames import unmodelled_warnings
+from .render.frames import approximation_warnings
 from .viewport import live
 
 ENGINE = "LPV_GI"
@@ -25,13 +25,12 @@ def compat_panels() -> list:
 
 
 def warning_lines(stats: dict) -> list[str]:
-    """What the LPV left out or approximated, one line each: unmodelled light, dropped input
-    (counts), surfaces outside the LPV, spaces too small for its cells."""
+    """What the LPV left out or approximated, one line each: dropped input (counts), light
+    sources, shaders and images approximated (named), surfaces outside the LPV, spaces too
+    small for its cells."""
     dropped = stats.get("dropped", {})
-    lines = unmodelled_warnings(dropped)
-    lines += [f"left out: {n} {key.replace('_', ' ')}" for key, n in sorted(dropped.items())
-              if n and key != "emissive_materials_ignored"]
-    lines += [f"approximated: {line}" for line in stats.get("info", {}).get("approximated", [])]
+    lines = [f"left out: {n} {key.replace('_', ' ')}" for key, n in sorted(dropped.items()) if n]
+    lines += approximation_warnings(stats.get("info", {}).get("approximated", []))
     return lines + [f"{s['what']}: {s['reason']}" for s in stats.get("skipped", [])
                     if s["stage"] in ("lpv", "resolution")]
 

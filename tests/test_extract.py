@@ -458,7 +458,9 @@ def test_world_light_and_emissive_materials_are_reported_as_not_modelled():
     assert run().world.radiance.reshape(-1, 3)[0] == pytest.approx((0.2, 0.3, 0.4))
     glow, p = material("Glow")
     ob.data.materials.append(glow)
-    assert "emissive_materials_ignored" not in run().dropped
+    emission = {m.name: m.emission for m in run().materials}
+    assert emission["Glow"] == pytest.approx((0.0, 0.0, 0.0))
     p.inputs["Emission Strength"].default_value = 5.0
     p.inputs["Emission Color"].default_value = (1.0, 0.5, 0.2, 1.0)
-    assert run().dropped["emissive_materials_ignored"] == 1
+    emission = {m.name: m.emission for m in run().materials}
+    assert emission["Glow"] == pytest.approx((5.0, 2.5, 1.0))

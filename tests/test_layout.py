@@ -14,9 +14,11 @@ from conftest import ROOT
 PACKAGES = ("lpv_core", "lpv_addon")
 # The extension zip's Python: 14,000 was the budget of the restructuring (13,721 lines then);
 # the render engine, the shadow and RSM budgets, the input checks and the batch's output
-# handling added about 1,500 lines of new behaviour. The cap catches duplicated code growing
-# back; raise it only for new behaviour, by what that behaviour measures.
-ZIP_PYTHON_LINES = 16_000
+# handling added about 1,500 lines of new behaviour; the light sources without an RSM (World,
+# emitters), soft shadows and exact area lights, and the materials (Cycles' Diffuse Color
+# rule, textures per point) about 3,300 more. The cap catches duplicated code growing back;
+# raise it only for new behaviour, by what that behaviour measures.
+ZIP_PYTHON_LINES = 19_500
 
 
 def _module_name(path: Path) -> str:

@@ -163,7 +163,8 @@ scene.render.filepath = os.path.join(tmp, "workbench", "still.exr")
 bpy.ops.render.render(write_still=True)
 scene.render.engine, scene.render.film_transparent = "LPV_GI", False
 
-# The main panel's warnings: world light and an emissive material are left out.
+# The main panel's warnings: the World and an emissive material are modelled (no warning);
+# a missing image is approximated, named.
 scene.world = scene.world or bpy.data.worlds.new("World")
 scene.world.use_nodes = True
 bg = scene.world.node_tree.nodes["Background"]
@@ -172,6 +173,10 @@ mat = bpy.data.materials.new("Glow")
 mat.use_nodes = True
 mat.node_tree.nodes["Principled BSDF"].inputs["Emission Strength"].default_value = 5.0
 mat.node_tree.nodes["Principled BSDF"].inputs["Emission Color"].default_value = (1, 1, 1, 1)
+tex = mat.node_tree.nodes.new("ShaderNodeTexImage")
+tex.image = bpy.data.images.load(os.path.join(tmp, "no_such_image.png"), check_existing=False)
+mat.node_tree.links.new(tex.outputs["Color"],
+                        mat.node_tree.nodes["Principled BSDF"].inputs["Base Color"])
 bpy.data.objects["BackWall"].data.materials[0] = mat
 scene.lpv.enabled = True
 live.refresh(scene, wait=True)
@@ -356,11 +361,13 @@ def test_film_transparent_alpha_follows_coverage(run):
     assert (alpha[empty] == 0).all() and (alpha[full] == 1).all()
 
 
-def test_main_panel_warns_about_left_out_light(run):
+def test_main_panel_names_approximated_input(run):
     _, out, _ = run
     lines = out["warning_lines"]
-    assert any(line.startswith("the world") for line in lines), lines
-    assert any("emissive material" in line for line in lines), lines
+    missing = [line for line in lines if line.startswith("approximated: material 'Glow'")
+               and "no_such_image.png" in line and "magenta" in line]
+    assert missing, lines
+    assert not any("world" in line or "emissive" in line for line in lines), lines
     text = " ".join(t for t, _ in out["panel_labels"])
     icons = [i for _, i in out["panel_labels"]]
-    assert "the world" in text and "emissive" in text and icons.count("ERROR") >= 2, out
+    assert "no_such_image.png" in text and icons.count("ERROR") >= 1, out

@@ -19,7 +19,7 @@ import numpy as np
 from ..scene_io.extract import extract_scene
 from ..viewport import live, rendered
 from ..worker_client import WorkerClient, WorkerError
-from .frames import unmodelled_warnings
+from .frames import approximation_warnings
 from .passes import receive, send
 
 # Cycles' names of the passes besides Combined, and the view layer toggles that add them.
@@ -111,7 +111,7 @@ class LPVRenderEngine(bpy.types.RenderEngine):
         w, h = self.resolution_x, self.resolution_y
         self.update_stats("", "LPV GI: reading the scene")
         core_scene = extract_scene(depsgraph, scene, (w, h))
-        for line in unmodelled_warnings(core_scene.dropped):
+        for line in approximation_warnings(core_scene.approximated):
             self.report({"WARNING"}, f"LPV GI: {line}")
         self.update_progress(0.1)
         self.update_stats("", "LPV GI: light propagation and passes")

@@ -193,13 +193,10 @@ class InWorker:
         self.worker.close()
 
 
-def unmodelled_warnings(dropped: dict) -> list[str]:
-    """One line per light source LPV GI does not model (also in stats.json)."""
-    out = []
-    n = dropped.get("emissive_materials_ignored", 0)
-    if n:
-        out.append(f"{n} emissive material(s) ignored; LPV GI models lamps only")
-    return out
+def approximation_warnings(approximated: list[str]) -> list[str]:
+    """One line per source, shader or image the extraction approximated (also in
+    stats.json's info), as the batch log, F12's report and the main panel show them."""
+    return [f"approximated: {line}" for line in approximated]
 
 
 class BatchJob:
@@ -285,8 +282,7 @@ class BatchJob:
         if self.record["settings"] is None:
             self.record["settings"] = core_scene.settings.as_dict()
             self._open_stats()
-            for line in unmodelled_warnings(core_scene.dropped) + [
-                    f"approximated: {a}" for a in core_scene.approximated]:
+            for line in approximation_warnings(core_scene.approximated):
                 self._log(f"warning: {line}")
         entry = {"frame": frame, "t0": t0, "extract": t_ex, "timings": timings,
                  "intensity": core_scene.settings.intensity}

@@ -130,9 +130,6 @@ def extract_scene(
             result.dropped[f"{key}_nonfinite_or_negative_defaulted"] = n
     for key, value in dropped.items():
         result.dropped[key] = result.dropped.get(key, 0) + value
-    # Light sources the LPV does not model: counted, so stats and the CLI can say so.
-    if geo.emissive:
-        result.dropped["emissive_materials_ignored"] = len(geo.emissive)
     return result
 
 
@@ -165,7 +162,6 @@ class _GeometryCollector:
         self.cache: dict[int, tuple] = {}
         self.chunks: list[tuple] = []
         self.materials: list = []
-        self.emissive: list = []  # names of materials that emit light (not modelled)
         self._material_ids: dict = {}
         self.infos: list = []  # materials.MaterialInfo per material
         self.approximated: list[str] = []
@@ -272,8 +268,6 @@ class _GeometryCollector:
         mid = self._material_ids.get(key)
         if mid is None:
             info = material_info(mat)
-            if mat is not None and info.material.emission.any():
-                self.emissive.append(mat.name)
             for line in info.notes:
                 self._note(line)
             self.defaulted["texels"] += info.defaulted_texels
