@@ -19,6 +19,20 @@ from .model import (
 from .textures import Texture
 from .world import World
 
-__all__ = ["AREA_TYPES", "LIGHT_TYPES", "Area", "Camera", "GISettings", "Light", "Material",
-           "Scene", "cross3", "look_at_matrix", "make_scene", "orthographic_matrix",
-           "perspective_matrix", "Texture", "World"]
+__all__ = [
+    "AREA_TYPES",
+    "LIGHT_TYPES",
+    "Area",
+    "Camera",
+    "GISettings",
+    "Light",
+    "Material",
+    "Scene",
+    "Texture",
+    "World",
+    "cross3",
+    "look_at_matrix",
+    "make_scene",
+    "orthographic_matrix",
+    "perspective_matrix",
+]
