@@ -174,7 +174,9 @@ mat.use_nodes = True
 mat.node_tree.nodes["Principled BSDF"].inputs["Emission Strength"].default_value = 5.0
 mat.node_tree.nodes["Principled BSDF"].inputs["Emission Color"].default_value = (1, 1, 1, 1)
 tex = mat.node_tree.nodes.new("ShaderNodeTexImage")
-tex.image = bpy.data.images.load(os.path.join(tmp, "no_such_image.png"), check_existing=False)
+tex.image = bpy.data.images.new("no_such_image.png", 4, 4)
+tex.image.source = "FILE"
+tex.image.filepath = os.path.join(tmp, "no_such_image.png")
 mat.node_tree.links.new(tex.outputs["Color"],
                         mat.node_tree.nodes["Principled BSDF"].inputs["Base Color"])
 bpy.data.objects["BackWall"].data.materials[0] = mat
