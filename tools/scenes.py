@@ -34,6 +34,7 @@ __all__ = [
     "SCENES",
     "WHITE",
     "build",
+    "checker_room",
     "city",
     "cornell_box",
     "emission_material",
@@ -499,6 +500,67 @@ def soft_room(resolution: Sequence[int] = (128, 128), *, shader: str = "DIFFUSE"
     return scene_facts(scene, [area, bulb])
 
 
+CHECKER = ((0.8, 0.1, 0.1), (0.1, 0.7, 0.1))
+
+
+def checker_image(name: str, cells: int = 8) -> bpy.types.Image:
+    """A generated, packed ``cells`` x ``cells`` red/green checker (linear, Non-Color), so a
+    saved .blend carries it."""
+    img = bpy.data.images.new(name, cells, cells, alpha=True, float_buffer=True)
+    img.colorspace_settings.name = "Non-Color"
+    px = [c for j in range(cells) for i in range(cells) for c in (*CHECKER[(i + j) % 2], 1.0)]
+    img.pixels.foreach_set(px)
+    img.pack()
+    return img
+
+
+def principled_material(name: str, color: Sequence[float], metallic: float = 0.0,
+                        roughness: float = 0.5, image: bpy.types.Image | None = None,
+                        ) -> bpy.types.Material:
+    """A Principled BSDF material; with ``image``, a closest-filtered Image Texture on the
+    object's UV map drives Base Color."""
+    mat = bpy.data.materials.new(name)
+    mat.use_nodes = True
+    nt = mat.node_tree
+    bsdf = nt.nodes["Principled BSDF"]
+    bsdf.inputs["Base Color"].default_value = (*color, 1.0)
+    bsdf.inputs["Metallic"].default_value = metallic
+    bsdf.inputs["Roughness"].default_value = roughness
+    if image is not None:
+        tex = nt.nodes.new("ShaderNodeTexImage")
+        tex.image = image
+        tex.interpolation = "Closest"
+        nt.links.new(tex.outputs["Color"], bsdf.inputs["Base Color"])
+    return mat
+
+
+def checker_room(resolution: Sequence[int] = (128, 128), *, shader: str = "DIFFUSE",
+                 new_file: bool = True) -> dict:
+    """A 4 x 4 m floor with a UV-mapped packed checker image (Principled), two 1.5 m diffuse
+    walls behind, a plain white block and a metallic block (Metallic 1, roughness 0.3) under
+    one 300 W point light; ``shader`` sets the walls' and plain block's BSDF."""
+    scene = new_scene("checker_room", resolution, new_file)
+    floor_mat = principled_material("CheckerFloor", (0.8, 0.8, 0.8),
+                                    image=checker_image("Checker"))
+    wall = diffuse_material("Wall", (0.75, 0.73, 0.70), shader)
+    plain = diffuse_material("Plain", (0.8, 0.8, 0.8), shader)
+    metal = principled_material("Metal", (0.8, 0.8, 0.8), metallic=1.0, roughness=0.3)
+    lo, hi = (-2.0, -2.0, 0.0), (2.0, 2.0, 1.5)
+    floor = add_mesh_object(scene, "Floor", box_geometry(lo, hi, ["-z"], inward=True), floor_mat)
+    mesh = floor.data
+    uv = mesh.uv_layers.new(name="UVMap")
+    for loop in mesh.loops:
+        co = mesh.vertices[loop.vertex_index].co
+        uv.data[loop.index].uv = ((co.x - lo[0]) / (hi[0] - lo[0]),
+                                  (co.y - lo[1]) / (hi[1] - lo[1]))
+    add_mesh_object(scene, "Walls", box_geometry(lo, hi, ["+y", "+x"], inward=True), wall)
+    add_mesh_object(scene, "Plain", box_geometry((-1.2, 0.2, 0.0), (-0.4, 1.0, 1.0)), plain)
+    add_mesh_object(scene, "Metal", box_geometry((0.4, -0.2, 0.0), (1.2, 0.6, 0.8)), metal)
+    lamp = add_light(scene, "Point", "POINT", 300.0, (0.3, -0.6, 2.2))
+    add_camera(scene, (0.0, -4.2, 3.0), (0.0, 0.2, 0.3), lens_mm=50.0)
+    return scene_facts(scene, [lamp])
+
+
 BUILDERS: dict[str, Callable[..., dict]] = {
     "cornell_box": cornell_box,
     "point_room": point_room,
@@ -510,6 +572,7 @@ BUILDERS: dict[str, Callable[..., dict]] = {
     "sky_yard": sky_yard,
     "panel_room": panel_room,
     "soft_room": soft_room,
+    "checker_room": checker_room,
 }
 
 # Named scenes of the team (tools/make_references.py): name -> (builder, keyword arguments).
@@ -527,6 +590,7 @@ SCENES: dict[str, tuple[str, dict]] = {
     "sky_yard": ("sky_yard", {}),
     "panel_room": ("panel_room", {}),
     "soft_room": ("soft_room", {}),
+    "checker_room": ("checker_room", {}),
 }
 
 
