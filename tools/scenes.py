@@ -590,7 +590,6 @@ SCENES: dict[str, tuple[str, dict]] = {
     "sky_yard": ("sky_yard", {}),
     "panel_room": ("panel_room", {}),
     "soft_room": ("soft_room", {}),
-    "checker_room": ("checker_room", {}),
 }
 
 
