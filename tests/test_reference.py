@@ -216,7 +216,7 @@ def test_rows_top_first(tmp_path):
 # ---------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("name", sorted(scenes.SCENES))
+@pytest.mark.parametrize("name", sorted(set(scenes.SCENES) - set(scenes.LIGHT_SOURCE_SCENES)))
 def test_scene_builders(name):
     facts = scenes.build(name, resolution=(40, 30))
     scene = bpy.context.scene
@@ -237,6 +237,38 @@ def test_scene_builders(name):
         assert kinds <= {"ShaderNodeOutputMaterial", "ShaderNodeBsdfDiffuse"}
     world = scene.world.node_tree.nodes["Background"]
     assert world.inputs["Strength"].default_value == 0.0
+
+
+def _emitting(mat) -> bool:
+    for n in mat.node_tree.nodes:
+        if n.bl_idname == "ShaderNodeEmission" and n.inputs["Strength"].default_value > 0:
+            return True
+        if (n.bl_idname == "ShaderNodeBsdfPrincipled"
+                and n.inputs["Emission Strength"].default_value > 0):
+            return True
+    return False
+
+
+@pytest.mark.parametrize("name", scenes.LIGHT_SOURCE_SCENES)
+def test_light_source_scene_builders(name):
+    """Each acceptance scene is lit by what it is named for and by nothing else."""
+    facts = scenes.build(name, resolution=(40, 30))
+    scene = bpy.context.scene
+    assert (scene.render.resolution_x, scene.render.resolution_y) == (40, 30)
+    assert facts["objects"] and scene.camera is not None
+    world = scene.world.node_tree.nodes
+    strength = world["Background"].inputs["Strength"].default_value
+    emitting = [m.name for m in bpy.data.materials if m.users and _emitting(m)]
+    lamps = {bpy.data.objects[n].data.type: bpy.data.objects[n].data for n in facts["lights"]}
+    if name in ("sky_room", "sky_yard"):
+        assert strength > 0 and not lamps and not emitting
+        assert ("ShaderNodeTexSky" in {n.bl_idname for n in world}) == (name == "sky_yard")
+    elif name == "panel_room":
+        assert strength == 0 and not lamps and len(emitting) >= 2
+    else:
+        assert strength == 0 and not emitting and set(lamps) == {"AREA", "POINT"}
+        assert lamps["AREA"].size == pytest.approx(1.0)
+        assert lamps["POINT"].shadow_soft_size == pytest.approx(0.25)
 
 
 def test_cornell_normals_face_the_room():

@@ -591,6 +591,10 @@ SCENES: dict[str, tuple[str, dict]] = {
     "panel_room": ("panel_room", {}),
     "soft_room": ("soft_room", {}),
 }
+# The scenes lit by the World, emitting materials or soft lamps (issue 17's acceptance
+# scenes, tools/sources_check.py); the others are lamp-lit, hard-shadowed, diffuse-only and
+# black-world, as the radiometric calibration and the report need.
+LIGHT_SOURCE_SCENES = ("sky_room", "sky_yard", "panel_room", "soft_room")
 
 
 def build(name: str, **kw) -> dict:
