@@ -178,9 +178,9 @@ def write(r: dict, out: Path, argv: list[str]) -> None:
          f"Cycles' Diffuse Color (an 8-neighbour differing by > {COLOUR_STEP})."), "",
         *table(r), "",
         f"Approximated: {'; '.join(r['approximated']) or 'nothing'}. LPV time {r['lpv_s']:.2f} s.", "",
-        ("Where the Diffuse Color error is: the checker's texel edges (Cycles' 1.5 px "
-         "Blackman-Harris pixel filter mixes the two colours with other weights than our "
-         "supersampling), and on the floor a uniform bias of about 1.7 % (ours brighter): "
+        ("Where the Diffuse Color error is: the checker's texel edges (Cycles averages "
+         "a pixel's 1-pixel box over 512 random samples, our default antialias over a 2x2 "
+         "grid: the two colours mix in other proportions), and on the floor a uniform bias of about 1.7 % (ours brighter): "
          "Cycles' Diffuse Color of a Principled dielectric is the base colour times one minus "
          "the specular layer's albedo at the view angle, which grows towards grazing, while "
          "ours takes one value per material."),
