@@ -332,10 +332,16 @@ def warm_up(path: str) -> int:
     try:
         scene = load_scene(path)
         os.unlink(path)
-        scene.lights += [dataclasses.replace(scene.lights[0], name=f"warm-up {t}", type=t)
-                         for t in LIGHT_TYPES if t not in {li.type for li in scene.lights}]
         points = scene.positions.reshape(-1, 3)
         lo, hi = points.min(0), points.max(0)
+        at = np.eye(4)
+        at[:3, 3] = (lo + hi) / 2
+        # a scene lit only by the World or emitters still compiles the lamps' kernels
+        template = scene.lights[0] if scene.lights else Light("warm-up", "POINT", at)
+        scene.lights += [dataclasses.replace(template, name=f"warm-up {t}", type=t)
+                         for t in LIGHT_TYPES if t not in {li.type for li in scene.lights}]
+        if scene.world is None:  # and the sky's kernel
+            scene.world = World("warm-up", np.full((1, 1, 3), 0.05, np.float32))
         scene.camera = Camera.look_at(hi + (hi - lo), (lo + hi) / 2, resolution=(16, 16))
         engine = Engine()
         engine.update(scene, Stats())

@@ -56,3 +56,30 @@ def test_reinstall_starts_warm_with_the_same_numbers(first_run):
     values = first_run["values"]  # numpy (cold) against compiled (warm), the same scene
     assert values["max"] > 0
     assert values["max_difference"] <= 1e-5 * values["max"]  # the twins' widest tolerance
+
+
+def test_warm_up_of_a_scene_without_lamps(tmp_path):
+    """A scene lit only by the World (no lamp) still warms up every kernel: the warm-up child
+    adds the light types and a World it lacks, and ends with its kernels compiled."""
+    import json
+    import subprocess
+    import sys
+
+    import numpy as np
+
+    from lpv_core.scene import World, make_scene
+    from lpv_core.worker import save_scene
+
+    tris = np.array([[[-2, -2, 0], [2, -2, 0], [2, 2, 0]], [[-2, -2, 0], [2, 2, 0], [-2, 2, 0]],
+                     [[0, -1, 0], [0, 1, 0], [0, 1, 2]]], float)
+    path = str(tmp_path / "scene.npz")
+    save_scene(path, make_scene(tris, world=World("sky", np.ones((1, 1, 3), np.float32))))
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    child = subprocess.Popen([sys.executable, "-m", "lpv_core.worker", "--warm-up", path],
+                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                             text=True, env=env)
+    out = child.stdout.read()
+    err = child.stderr.read()
+    assert child.wait(timeout=600) == 0, err[-2000:]
+    last = json.loads(out.strip().splitlines()[-1])
+    assert last["compiled"] > 0, out

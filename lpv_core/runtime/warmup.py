@@ -72,7 +72,7 @@ class Warmup:
 
     def start(self, path: str, scene) -> None:
         """Compile with this scene (a copy of its file: the client removes the request)."""
-        if self.state != "waiting" or not (len(scene.positions) and scene.lights):
+        if self.state != "waiting" or not len(scene.positions):  # lamps, World or emitters
             return
         copy = path + ".warm-up.npz"
         shutil.copyfile(path, copy)
