@@ -1,13 +1,14 @@
 """Compiled twin of sky.irradiance (kernels/__init__.py): the World's shadowed, normalised
 sum over its directions for every receiver in one pass, each direction's visibility the same
 normal-offset 2x2 percentage-closer test of its orthographic map as render/direct.py's hard
-shadows (``_receivers``, ``_hard``)."""
+shadows (the compiled direct light's own ``_pcf``)."""
 
 from __future__ import annotations
 
 import numpy as np
 
 from ..runtime import jit, pool
+from .direct import _pcf
 
 
 def irradiance(directions, weights, radiance, views, half, depths, positions,
@@ -46,24 +47,8 @@ def _sky_kernel(pos, nrm, dirs, weights, rad, views, half, depths, out, m0,
             world = 2.0 * half[k] / res
             ox, oy, oz = px + nx * world * 1.5, py + ny * world * 1.5, pz + nz * world * 1.5
             v = views[k]
-            vx = v[0, 0] * ox + v[0, 1] * oy + v[0, 2] * oz + v[0, 3]
-            vy = v[1, 0] * ox + v[1, 1] * oy + v[1, 2] * oz + v[1, 3]
             d = -(v[2, 0] * ox + v[2, 1] * oy + v[2, 2] * oz + v[2, 3])
-            u, w = vx / half[k], vy / half[k]
-            vis = 1.0
-            if abs(u) <= 1.0 and abs(w) <= 1.0:
-                fx, fy = (u + 1.0) * 0.5 * res - 0.5, (1.0 - w) * 0.5 * res - 0.5
-                x0, y0 = int(np.floor(fx)), int(np.floor(fy))
-                tx, ty = fx - x0, fy - y0
-                vis = 0.0
-                for dy in range(2):
-                    wy = ty if dy else 1.0 - ty
-                    ys = min(max(y0 + dy, 0), res - 1)
-                    for dx in range(2):
-                        wx = tx if dx else 1.0 - tx
-                        xs = min(max(x0 + dx, 0), res - 1)
-                        if d <= depths[k, ys, xs] + world * 1.5:
-                            vis += wx * wy
+            vis = _pcf(v, True, half[k], depths[k], res, ox, oy, oz, d, world * 1.5)
             s = weights[k] * c * vis
             e0 += s * rad[k, 0]
             e1 += s * rad[k, 1]
