@@ -137,6 +137,19 @@ def _strata(side: int, sa: np.ndarray, sb: np.ndarray, round_: bool):
     return lights_mod.concentric(a, b) if round_ else (a, b)
 
 
+def _view_indices(shadow: ShadowMap, points: np.ndarray) -> np.ndarray:
+    """Index into shadow.views of the view each point (N, 3) falls in: 0 for a single view,
+    else its cube face's (-1 where that face was not rendered)."""
+    light = shadow.light
+    if light.type == "SUN" or len(shadow.views) == 1:
+        return np.zeros(points.shape[0], int)
+    rel = points - light.position
+    axis = np.argmax(np.abs(rel), axis=1)
+    sign = np.take_along_axis(rel, axis[:, None], 1)[:, 0] < 0
+    face_index = {v.face: i for i, v in enumerate(shadow.views)}
+    return np.array([face_index.get(f, -1) for f in range(6)])[axis * 2 + sign]
+
+
 def _lookup(shadow: ShadowMap, x: np.ndarray, p_off: np.ndarray, n: np.ndarray,
             dist: np.ndarray, bias: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """For tap points x (N, 3): the map's depth at the texel each falls in (inf outside the
@@ -149,14 +162,7 @@ def _lookup(shadow: ShadowMap, x: np.ndarray, p_off: np.ndarray, n: np.ndarray,
     depth_out = np.full(x.shape[0], np.inf)
     blocked = np.zeros(x.shape[0], bool)
     single = light.type == "SUN" or len(shadow.views) == 1
-    if single:
-        view_of = np.zeros(x.shape[0], int)
-    else:
-        rel = x - light.position
-        axis = np.argmax(np.abs(rel), axis=1)
-        sign = np.take_along_axis(rel, axis[:, None], 1)[:, 0] < 0
-        face_index = {v.face: i for i, v in enumerate(shadow.views)}
-        view_of = np.array([face_index.get(f, -1) for f in range(6)])[axis * 2 + sign]
+    view_of = _view_indices(shadow, x)
     for i, (view, depth) in enumerate(zip(shadow.views, shadow.depths)):
         sel = np.nonzero(view_of == i)[0]
         if sel.size == 0:
@@ -207,14 +213,7 @@ def _receivers(shadow: ShadowMap, positions: np.ndarray, normals: np.ndarray):
     m = positions.shape[0]
     res = shadow.resolution
     light = shadow.light
-    if light.type == "SUN" or len(shadow.views) == 1:
-        face_of = np.zeros(m, int)
-    else:
-        rel = positions - light.position
-        axis = np.argmax(np.abs(rel), axis=1)
-        sign = np.take_along_axis(rel, axis[:, None], 1)[:, 0] < 0
-        face_index = {v.face: i for i, v in enumerate(shadow.views)}
-        face_of = np.array([face_index.get(f, -1) for f in range(6)])[axis * 2 + sign]
+    face_of = _view_indices(shadow, positions)
     p_off = np.array(positions, np.float64)
     dist = np.zeros(m)
     bias = np.zeros(m)
