@@ -285,6 +285,19 @@ def _frac_hash(px, py, pz, hashes, o):  # pragma: no cover
 
 
 @jit.kernel
+def _tap(k, side, sa, sb, round_, ux, uy, uz, vx, vy, vz, s, sun, lp, qx, qy,
+         qz):  # pragma: no cover
+    """Tap ``k`` of a side x side pattern: the stratum's point on the source (axes u, v),
+    seen from the receiver q and scaled by ``s`` onto the map (sun: q moved across by s)."""
+    a, b = _stratum(k, side, sa, sb, round_)
+    ox, oy, oz = a * ux + b * vx, a * uy + b * vy, a * uz + b * vz
+    if sun:
+        return qx + s * ox, qy + s * oy, qz + s * oz
+    cx, cy, cz = lp[0] + ox, lp[1] + oy, lp[2] + oz
+    return cx + s * (qx - cx), cy + s * (qy - cy), cz + s * (qz - cz)
+
+
+@jit.kernel
 def _stratum(idx, side, sa, sb, round_):  # pragma: no cover
     """direct._strata's point ``idx``: shifted stratum on [-1, 1]^2, or concentric-mapped."""
     a = ((idx // side) + 0.5) / side + sa
@@ -395,13 +408,8 @@ def _soft(lp, mats, ortho, scale, depths, face_view, single, res, skind, su, sv,
     total = 0.0
     for k in range(SEARCH_SIDE * SEARCH_SIDE + 1):
         if k < SEARCH_SIDE * SEARCH_SIDE:
-            a, b = _stratum(k, SEARCH_SIDE, sa, sb, round_)
-            ox, oy, oz = a * ux + b * vx, a * uy + b * vy, a * uz + b * vz
-            if sun:
-                x, y, z = qx + s * ox, qy + s * oy, qz + s * oz
-            else:
-                cx, cy, cz = lp[0] + ox, lp[1] + oy, lp[2] + oz
-                x, y, z = cx + s * (qx - cx), cy + s * (qy - cy), cz + s * (qz - cz)
+            x, y, z = _tap(k, SEARCH_SIDE, sa, sb, round_, ux, uy, uz, vx, vy, vz, s, sun, lp,
+                           qx, qy, qz)
         else:
             x, y, z = qx, qy, qz  # the receiver's own texel
         dep, blocked = _lookup(lp, mats, ortho, scale, depths, face_view, single, res, x, y, z,
@@ -422,13 +430,8 @@ def _soft(lp, mats, ortho, scale, depths, face_view, single, res, skind, su, sv,
         return hard
     hits = 0
     for k in range(FILTER_SIDE * FILTER_SIDE):
-        a, b = _stratum(k, FILTER_SIDE, sa, sb, round_)
-        ox, oy, oz = a * ux + b * vx, a * uy + b * vy, a * uz + b * vz
-        if sun:
-            x, y, z = qx + s * ox, qy + s * oy, qz + s * oz
-        else:
-            cx, cy, cz = lp[0] + ox, lp[1] + oy, lp[2] + oz
-            x, y, z = cx + s * (qx - cx), cy + s * (qy - cy), cz + s * (qz - cz)
+        x, y, z = _tap(k, FILTER_SIDE, sa, sb, round_, ux, uy, uz, vx, vy, vz, s, sun, lp,
+                       qx, qy, qz)
         _, blocked = _lookup(lp, mats, ortho, scale, depths, face_view, single, res, x, y, z,
                              qx, qy, qz, nx, ny, nz, dist, bias)
         if blocked:
