@@ -33,3 +33,13 @@ def gl():
     except Exception as exc:  # noqa: BLE001 - no GL 4.3 context on this machine
         pytest.skip(f"no OpenGL 4.3 compute context: {exc}")
     return gl_backend
+
+
+@pytest.fixture(scope="module")
+def registered_addon():
+    """The add-on registered in this process's bpy for a test module, unregistered after it."""
+    import lpv_addon
+
+    lpv_addon.register()
+    yield
+    lpv_addon.unregister()

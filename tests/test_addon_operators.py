@@ -11,7 +11,6 @@ import pytest
 
 bpy = pytest.importorskip("bpy")
 
-import lpv_addon
 from lpv_addon import operators, properties
 from lpv_addon.render import compare
 from lpv_addon.render.frames import BatchJob
@@ -23,10 +22,8 @@ pytestmark = pytest.mark.bpy
 
 
 @pytest.fixture(scope="module", autouse=True)
-def addon():
-    lpv_addon.register()
-    yield
-    lpv_addon.unregister()
+def addon(registered_addon):
+    """Every test here runs with the add-on registered (conftest.registered_addon)."""
 
 
 @pytest.fixture()

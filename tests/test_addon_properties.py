@@ -12,7 +12,6 @@ import pytest
 
 bpy = pytest.importorskip("bpy")
 
-import lpv_addon
 from lpv_addon import properties
 from lpv_addon.scene_io import extract
 from tools import scenes
@@ -38,10 +37,8 @@ MATERIAL_VALUES = {"use_bleed_color": True, "bleed_color": (0.1, 0.7, 0.1),
 
 
 @pytest.fixture(scope="module", autouse=True)
-def addon():
-    lpv_addon.register()
-    yield
-    lpv_addon.unregister()
+def addon(registered_addon):
+    """Every test here runs with the add-on registered (conftest.registered_addon)."""
 
 
 @pytest.fixture()

@@ -16,7 +16,6 @@ bpy = pytest.importorskip("bpy")
 
 from mathutils import Vector
 
-import lpv_addon
 from lpv_addon import ui
 from lpv_addon.scene_io import world as W
 from lpv_addon.scene_io.extract import extract_scene
@@ -26,10 +25,8 @@ pytestmark = pytest.mark.bpy
 
 
 @pytest.fixture(scope="module", autouse=True)
-def addon():
-    lpv_addon.register()
-    yield
-    lpv_addon.unregister()
+def addon(registered_addon):
+    """Every test here runs with the add-on registered (conftest.registered_addon)."""
 
 
 @pytest.fixture(autouse=True)
