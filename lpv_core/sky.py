@@ -22,7 +22,7 @@ from .scene.world import World
 # (docs/decisions.md: HDR-FLIP of Combined 0.40 with 64, 0.28 with 128, 0.22 with 256).
 DIRECTIONS = 64
 RENDER_DIRECTIONS = 128
-SHADOW_RESOLUTION = 256  # texels per side of each direction's map (64 maps: 16 MiB)
+SHADOW_RESOLUTION = 256  # texels per side of each direction's map (64 maps: 16 MiB, 128: 32 MiB)
 MAX_MAP_SIDE = 512  # the map is box-averaged down to at most this many columns first
 MIN_MAP_SIDE = 64  # and sampled at least this finely (a 1x1 uniform World included)
 
@@ -113,6 +113,20 @@ def suns(directions: np.ndarray) -> list[Light]:
     return out
 
 
+def shadow_maps(atlas, lights: list, bounds, fit, res: int) -> list:
+    """The orthographic maps of the ``lights`` (suns) at ``res``, depth over ``bounds`` and
+    windows on ``fit`` (lights.light_views), drawn together into ``atlas`` (render/atlas.py)."""
+    from .render.direct import ShadowMap
+    from .scene.lights import light_views
+
+    views = [light_views(s, bounds, fit)[0] for s in lights]
+    stack = atlas.render(views, res)
+    maps = [ShadowMap(s, [v], [stack[i]], res, stack[i:i + 1])
+            for i, (s, v) in enumerate(zip(lights, views))]
+    _STACK[:] = [(maps, stack), *_STACK[:1]]
+    return maps
+
+
 def irradiance(directions: np.ndarray, weights: np.ndarray, radiance: np.ndarray, maps: list,
                positions: np.ndarray, normals: np.ndarray) -> np.ndarray:
     """World irradiance (M, 3) W/m^2 at receivers: the normalised shadowed sum (module doc);
@@ -139,11 +153,14 @@ def irradiance(directions: np.ndarray, weights: np.ndarray, radiance: np.ndarray
     return e * (np.pi / np.maximum(den, 1e-300))[:, None]
 
 
-_STACK: list = []  # [(maps list, their depths (K, R, R) float32)]: the last maps stacked
+_STACK: list = []  # [(maps list, their depths (K, R, R) float32)]: the last two stacked
 
 
 def _stacked(maps: list) -> np.ndarray:
-    """The maps' depths as one (K, R, R) float32 array, kept for the same list of maps."""
-    if not _STACK or _STACK[0][0] is not maps:
-        _STACK[:] = [(maps, np.stack([m.stacked()[0] for m in maps]))]
+    """The maps' depths as one (K, R, R) float32 array, kept for the last two lists of maps
+    (the GI's and the pixels')."""
+    for held, stack in _STACK:
+        if held is maps:
+            return stack
+    _STACK[:] = [(maps, np.stack([m.stacked()[0] for m in maps])), *_STACK[:1]]
     return _STACK[0][1]

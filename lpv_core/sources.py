@@ -72,6 +72,7 @@ class SourceMaps:
         self.key = None
         self.world: dict = {}  # K -> (world digest, directions, weights, radiance, maps)
         self.clusters = None  # (emission digest, [(Cluster, ShadowMap)])
+        self.atlas = None  # render/atlas.DepthAtlas of the engine's rasteriser (the World's maps)
 
     def reset(self, key) -> None:
         if key != self.key:
@@ -80,10 +81,12 @@ class SourceMaps:
 
 def maps(engine, scene, bounds, stats, k: int | None = None) -> SourceMaps:
     """engine's SourceMaps made current for ``scene`` in ``bounds``: the World's ``k``
-    directions (sky.DIRECTIONS: the GI's; RENDER_DIRECTIONS: the pixels') and their maps, and
-    the clusters' cube maps (the scene without emitters: they do not shadow themselves),
-    rendered when missing; stats.info["sources"] names what each approximates."""
+    directions (sky.DIRECTIONS: the GI's; RENDER_DIRECTIONS: the pixels') and their maps (one
+    atlas, render/atlas.py), and the clusters' cube maps (the scene without emitters: they do
+    not shadow themselves), rendered when missing; stats.info["sources"] names what each
+    approximates."""
     from .render import direct
+    from .render.atlas import DepthAtlas
 
     sm = engine.source_maps
     lo, hi = (np.asarray(b, np.float64) for b in bounds)
@@ -98,12 +101,12 @@ def maps(engine, scene, bounds, stats, k: int | None = None) -> SourceMaps:
         if k not in sm.world or sm.world[k][0] != digest:
             cells = sky.cells(world, k)
             old = sm.world.get(k)  # the maps depend on the geometry alone
+            if sm.atlas is None or sm.atlas.raster is not engine.raster:
+                sm.atlas = DepthAtlas(engine.raster)
             # windows on the LPV box, depth over all the geometry (what stands outside the
             # box, a closed space's walls, shades it from the sky too)
-            made = old[4] if old is not None else [
-                direct.render_shadow_map(engine.raster, s, scene.bounds(),
-                                         sky.SHADOW_RESOLUTION, (lo, hi))
-                for s in sky.suns(cells[0])]
+            made = old[4] if old is not None else sky.shadow_maps(
+                sm.atlas, sky.suns(cells[0]), scene.bounds(), (lo, hi), sky.SHADOW_RESOLUTION)
             sm.world[k] = (digest, *cells, made)
         info[f"World '{world.name}'"] = (
             f"{' and '.join(str(n) for n in sorted(sm.world))} directions (GI, pixels), "

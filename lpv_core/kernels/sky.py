@@ -31,27 +31,31 @@ def irradiance(directions, weights, radiance, views, half, depths, positions,
 def _sky_kernel(pos, nrm, dirs, weights, rad, views, half, depths, out, m0,
                 m1):  # pragma: no cover
     """Points m0..m1-1: den = sum_k w_k c_k, e = sum_k w_k c_k V_k L_k, out = pi e / den
-    (c_k = max(0, n.w_k))."""
+    (c_k = max(0, n.w_k)); direction by direction, so that one map at a time is read (twice
+    as fast as point by point through all 64 maps, docs/decisions.md)."""
     k_count, res = dirs.shape[0], depths.shape[1]
-    for m in range(m0, m1):
-        px, py, pz = pos[m, 0], pos[m, 1], pos[m, 2]
-        nx, ny, nz = nrm[m, 0], nrm[m, 1], nrm[m, 2]
-        den = e0 = e1 = e2 = 0.0
-        for k in range(k_count):
+    den = np.zeros(m1 - m0)
+    out[m0:m1] = 0.0
+    for k in range(k_count):
+        dark = rad[k, 0] == 0.0 and rad[k, 1] == 0.0 and rad[k, 2] == 0.0
+        world = 2.0 * half[k] / res  # a texel; render/direct.py's offset and bias: 1.5 of them
+        v = views[k]
+        for m in range(m0, m1):
+            nx, ny, nz = nrm[m, 0], nrm[m, 1], nrm[m, 2]
             c = nx * dirs[k, 0] + ny * dirs[k, 1] + nz * dirs[k, 2]
             if c <= 0.0:
                 continue
-            den += weights[k] * c
-            if rad[k, 0] == 0.0 and rad[k, 1] == 0.0 and rad[k, 2] == 0.0:
+            den[m - m0] += weights[k] * c
+            if dark:
                 continue
-            world = 2.0 * half[k] / res
-            ox, oy, oz = px + nx * world * 1.5, py + ny * world * 1.5, pz + nz * world * 1.5
-            v = views[k]
+            ox, oy, oz = (pos[m, 0] + nx * world * 1.5, pos[m, 1] + ny * world * 1.5,
+                          pos[m, 2] + nz * world * 1.5)
             d = -(v[2, 0] * ox + v[2, 1] * oy + v[2, 2] * oz + v[2, 3])
-            vis = _pcf(v, True, half[k], depths[k], res, ox, oy, oz, d, world * 1.5)
-            s = weights[k] * c * vis
-            e0 += s * rad[k, 0]
-            e1 += s * rad[k, 1]
-            e2 += s * rad[k, 2]
-        f = np.pi / den if den > 0.0 else 0.0
-        out[m, 0], out[m, 1], out[m, 2] = e0 * f, e1 * f, e2 * f
+            s = weights[k] * c * _pcf(v, True, half[k], depths[k], res, ox, oy, oz, d,
+                                      world * 1.5)
+            out[m, 0] += s * rad[k, 0]
+            out[m, 1] += s * rad[k, 1]
+            out[m, 2] += s * rad[k, 2]
+    for m in range(m0, m1):
+        f = np.pi / den[m - m0] if den[m - m0] > 0.0 else 0.0
+        out[m, 0], out[m, 1], out[m, 2] = out[m, 0] * f, out[m, 1] * f, out[m, 2] * f
