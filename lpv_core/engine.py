@@ -222,7 +222,9 @@ class Engine:
             self.raster.upload(scene.positions, scene.normals, scene.albedo_per_triangle(),
                                scene.reflectance_per_triangle(),
                                receiver=None if scene.receiver is None else scene.flag("receiver"),
-                               origin=origin, surface=surface)
+                               origin=origin, surface=surface,
+                               shares=textures.view_shares(scene.materials,
+                                                           scene.material_index))
             if self.raster.surface is not None and stats is not None:
                 stats.info["textures"] = self.raster.surface.info
 

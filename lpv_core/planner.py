@@ -213,6 +213,9 @@ def light_plan(lights: list[Light], grid: Grid, scene: Scene,
     if scene.triangle_count:
         refl = scene.reflectance_per_triangle()  # 0 for non-casters: they make no VPL
         bounce = (refl[:, 0] > 0) | (refl[:, 1] > 0) | (refl[:, 2] > 0)
+        glossy = scene.specular_per_triangle()  # a glossy caster's mirror VPLs
+        if glossy is not None:
+            bounce |= glossy.max(axis=1) > 0
         tris = scene.positions[bounce]
         tris = tris[_tri_box_overlap(tris, lo, hi)]
     else:

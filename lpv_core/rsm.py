@@ -22,7 +22,9 @@ from .scene.model import Light
 
 @dataclass
 class RSM:
-    """VPLs of one light: (N, 3) positions, normals and reflected flux (W), (N,) surfel area."""
+    """VPLs of one light: (N, 3) positions, normals and reflected flux (W), (N,) surfel area;
+    ``lift`` (N, 3) or None: what moves a VPL's injection offset from its normal onto its
+    surface's (a mirror VPL's surface normal less its lobe axis, 0 for the rest)."""
 
     light: Light
     position: np.ndarray
@@ -30,6 +32,7 @@ class RSM:
     flux: np.ndarray
     area: np.ndarray
     texels: int  # texels rendered (for stats)
+    lift: np.ndarray | None = None
 
     @property
     def count(self) -> int:
@@ -70,26 +73,51 @@ def render_rsm(raster: Rasterizer, light: Light, bounds, resolution: int, fit=No
     if not parts:
         empty = np.zeros((0, 3))
         return RSM(light, empty, empty, empty, np.zeros(0), texels)
-    if len(parts) == 1:
-        return RSM(light, *parts[0], texels)
-    return RSM(light, *(np.concatenate(f) for f in zip(*parts)), texels)
+    joined = parts[0] if len(parts) == 1 else [np.concatenate(f) for f in zip(*parts)]
+    return RSM(light, *joined[:4], texels, *joined[4:])
 
 
 def view_vpls(light: Light, view: lights_mod.LightView, p4, n4, reflectance, origin) -> tuple:
     """(position, normal, flux, area) of the VPLs of one view's read-back targets ``p4``,
     ``n4`` (Rasterizer.read_rsm, positions relative to ``origin``; ``reflectance`` the
     uploaded per-triangle table): only the covered, reflecting texels are converted and lit
-    (the rest of the map costs nothing more)."""
+    (the rest of the map costs nothing more). A 6-column table (Rasterizer.rsm_texels with
+    glossy reflectance) adds, after them, each glossy texel's mirror VPL (mirror_vpls), and
+    a fifth array: the lift (RSM.lift)."""
     if jit.enabled():
         return _compiled.view_vpls(light, view, p4, n4, reflectance, origin)
     size = p4.shape[0]
     rows, cols = np.nonzero(p4[..., 3] > 0.5)
-    refl = reflectance[Rasterizer.triangles(p4[rows, cols], n4[rows, cols])]
-    lit = refl.max(axis=-1) > 0
-    rows, cols, refl = rows[lit], cols[lit], refl[lit]
+    table = reflectance[Rasterizer.triangles(p4[rows, cols], n4[rows, cols])]
+    lit = table.max(axis=-1) > 0
+    rows, cols, table = rows[lit], cols[lit], table[lit]
+    refl = table[:, :3]
     position = p4[rows, cols, :3].astype(np.float64) + origin
     normal = n4[rows, cols, :3].astype(np.float64)
     incident, surf_area = texel_flux(light, view, rows, cols, size, position, normal)
-    phi = incident[:, None] * refl * np.asarray(light.color, np.float64)
+    color = np.asarray(light.color, np.float64)
+    phi = incident[:, None] * refl * color
     keep = (phi.max(axis=-1) > 0) & np.isfinite(phi).all(axis=-1)
-    return position[keep], normal[keep], phi[keep], surf_area[keep]
+    out = position[keep], normal[keep], phi[keep], surf_area[keep]
+    if table.shape[1] == 3:
+        return out
+    if view.ortho:
+        incoming = np.broadcast_to(np.asarray(light.direction, np.float64), normal.shape)
+    else:
+        incoming = lights_mod.texel_rays(view, rows, cols, size, size)[0]
+    mirror = mirror_vpls(position, normal, incoming, incident[:, None] * table[:, 3:] * color,
+                         surf_area)
+    return tuple(np.concatenate(pair) for pair in zip((*out, np.zeros_like(out[1])), mirror))
+
+
+def mirror_vpls(position, normal, incoming, flux, area) -> tuple:
+    """The glossy bounce as VPLs (position, normal, flux, area, lift): at each surface point
+    (normal facing the light), flux ``flux`` (incident x glossy reflectance) leaving along the
+    mirror direction of the unit ``incoming`` direction; the VPL's normal is that direction,
+    so injection's cosine lobe around it carries exactly ``flux`` (a wider lobe than a glossy
+    one: docs/algorithm.md). Its lift (normal less axis) puts its injection offset along the
+    surface normal, as a diffuse VPL's: along the axis it would cross a floor under a wall."""
+    dn = np.einsum("nc,nc->n", incoming, normal)
+    axis = incoming - 2.0 * dn[:, None] * normal
+    keep = (dn < 0) & (flux.max(axis=-1) > 0) & np.isfinite(flux).all(axis=-1)
+    return position[keep], axis[keep], flux[keep], area[keep], (normal - axis)[keep]

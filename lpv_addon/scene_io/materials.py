@@ -120,6 +120,7 @@ class _Evaluator:
         self.notes: list[str] = []
         self.uv: tuple[str, np.ndarray | None] | None = None
         self.defaulted = 0
+        self.share: np.ndarray | None = None  # the last Principled's view_share
 
     def note(self, text: str) -> None:
         line = f"material '{self.mat.name}': {text}"
@@ -209,20 +210,27 @@ class _Evaluator:
         alpha = np.clip(val("Alpha", 1.0), 0.0, 1.0)
         ior = max(val("IOR", 1.5), 1e-6)
         f0 = ((ior - 1.0) / (ior + 1.0)) ** 2 * 2.0 * max(val("Specular IOR Level", 0.5), 0.0)
-        tint = self.color(inp["Specular Tint"], stack).mean() if "Specular Tint" in inp else 1
         rough = val("Roughness", 0.5)
         k = (1.0 - metallic) * (1.0 - transmission) * alpha
-        # The specular layer's albedo scales with its tint (Cycles' F0 x tint).
+        # The specular layer's untinted albedo: Specular Tint leaves Cycles' Diffuse Color as
+        # it is (measured: tint (1, 0.4, 0.2) at IOR 1.8, every view angle, within 0.03 %).
         spec = 1.0 - layer_transmitted(rough, f0)
-        weight = k * np.clip(1.0 - spec * np.asarray(tint), 0.0, 1.0)
+        weight = k * np.clip(1.0 - spec, 0.0, 1.0)
         over = 1.0  # the coat above both the base and the sheen
         coat = np.clip(val("Coat Weight"), 0.0, 1.0)
+        # the specular (and coat) layer over the view angle, relative to head-on
+        view = layer_transmitted_view(rough, f0)[:, None]
         if coat > 0:
             coat_ior = max(val("Coat IOR", 1.5), 1e-6)
             cf0 = ((coat_ior - 1.0) / (coat_ior + 1.0)) ** 2
             coat_tint = self.color(inp["Coat Tint"], stack).mean()
             coat_albedo = 1.0 - layer_transmitted(val("Coat Roughness", 0.03), cf0)
             over = (1.0 - coat * coat_albedo) * (1.0 - coat + coat * coat_tint)
+            coat_view = 1.0 - coat * (1.0 - layer_transmitted_view(val("Coat Roughness", 0.03),
+                                                                   cf0))
+            view = view * coat_view[:, None]
+        view = np.clip(view, 0.0, 1.0)
+        self.share = np.where(view[-1] > 0, view / np.where(view[-1] > 0, view[-1], 1.0), 1.0)
         sheen = np.clip(val("Sheen Weight"), 0.0, 1.0) * np.interp(
             np.clip(val("Sheen Roughness", 0.5), 0.0, 1.0), _ROUGHNESS, _SHEEN_ALBEDO)
         base = self.color(inp["Base Color"], stack)
@@ -467,6 +475,29 @@ def layer_transmitted(roughness: float, f0: float) -> float:
     return float(np.interp(r, _ROUGHNESS, col))
 
 
+_VIEW: dict = {}  # principled_view.json, read on first use
+
+
+def layer_transmitted_view(roughness: float, f0: float) -> np.ndarray:
+    """layer_transmitted at each cosine of the view angle of core SHARE_COS (K,): bilinear in
+    roughness and F0 (clamped to the table) of Cycles' Diffuse Color measured over the view
+    angle (python -m tools.measure_principled_layers --view -> principled_view.json)."""
+    if not _VIEW:
+        import json
+
+        with open(os.path.join(os.path.dirname(__file__), "principled_view.json")) as f:
+            _VIEW.update(json.load(f))
+    t = np.asarray(_VIEW["transmitted"], np.float64)  # (roughness, ior, cos_view)
+    ior = np.asarray(_VIEW["ior"], np.float64)
+    f0s = ((ior - 1.0) / (ior + 1.0)) ** 2
+    r, f = (float(np.clip(v, 0.0, 1.0)) for v in (roughness, f0))
+    cols = [np.interp(f, f0s, t[i, :, k]) for i in range(t.shape[0]) for k in range(t.shape[2])]
+    at = np.array([np.interp(r * r, np.square(_VIEW["roughness"]), c)
+                   for c in np.reshape(cols, (t.shape[0], -1)).T])
+    order = np.argsort(_VIEW["cos_view"])
+    return np.interp(core.scene.model.SHARE_COS, np.asarray(_VIEW["cos_view"])[order], at[order])
+
+
 def _by_identifier(sockets, identifier: str):
     return next((s for s in sockets if s.identifier == identifier), None)
 
@@ -513,6 +544,11 @@ def material_info(mat) -> MaterialInfo:
         diffuse, emission = ev.shader(surface)
     m = core.scene.Material(mat.name, np.clip(diffuse.const, 0.0, None).astype(np.float32))
     m.emission = np.clip(np.asarray(emission, np.float64), 0.0, None).astype(np.float32)
+    if output is not None and ev.share is not None and getattr(
+            ev.resolve(surface)[0], "bl_idname", "") == "ShaderNodeBsdfPrincipled":
+        share = np.broadcast_to(ev.share, (len(core.scene.model.SHARE_COS), 3))
+        if diffuse.const.any() and not np.allclose(share, 1.0):  # a Principled's own share
+            m.diffuse_share = np.ascontiguousarray(share, np.float32)
     info = MaterialInfo(m, color_attribute=diffuse.attr, notes=ev.notes,
                         defaulted_texels=ev.defaulted)
     if diffuse.pixels is not None:

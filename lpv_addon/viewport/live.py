@@ -174,7 +174,9 @@ def recombine_key(scene) -> str:
         d = {k: v for k, v in li.__dict__.items() if k not in ART_DIRECTION}
         lights.append({k: (np.asarray(v).tolist() if isinstance(v, (np.ndarray, tuple)) else v)
                        for k, v in d.items()})
-    mats = [(m.name, np.asarray(m.gi_reflectance()).tolist()) for m in scene.materials]
+    mats = [(m.name, np.asarray(m.gi_reflectance()).tolist(),
+             *([np.asarray(m.specular).tolist()] if np.any(m.specular) else []))
+            for m in scene.materials]
     clips = [(a.name, np.asarray(a.matrix).tolist()) for a in scene.areas if a.type == "CLIP"]
     return _hash(scene.positions, scene.normals, scene.material_index, scene.caster,
                  scene.occluder, settings, lights, mats, clips)

@@ -16,7 +16,8 @@ SPLIT_MIN = 64  # rows: smaller maps are converted on one thread
 
 def view_vpls(light: Light, view: lights_mod.LightView, p4, n4, reflectance, origin) -> tuple:
     """rsm.view_vpls by ``_vpl_kernel``: one compiled pass over the texels, with the formulas
-    of texel_flux and lights.intensity.
+    of texel_flux and lights.intensity (and rsm.mirror_vpls' for a 6-column table, written
+    to arrays of their own and appended).
     The rows are cut in two parts of equal covered texels, converted on two threads (the
     kernel releases the GIL); the second part's VPLs then move down behind the first's."""
     if light.type not in KINDS:
@@ -33,17 +34,33 @@ def view_vpls(light: Light, view: lights_mod.LightView, p4, n4, reflectance, ori
             cos_half,
             (1.0 - cos_half) * float(light.spot_blend) if light.type == "SPOT" else 0.0,
             np.asarray(light.color, np.float64), size)
+    glossy = reflectance.shape[1] == 6
+    m = size * size if glossy else 0
     out = (np.empty((size * size, 3)), np.empty((size * size, 3)), np.empty((size * size, 3)),
-           np.empty(size * size))
+           np.empty(size * size), np.empty((m, 3)), np.empty((m, 3)), np.empty((m, 3)),
+           np.empty(m), np.empty((m, 3)))
     if size < SPLIT_MIN:
-        n = _vpl_kernel(*args, 0, size, *out)
-        return tuple(a[:n] for a in out)
+        n, k = _vpl_kernel(*args, glossy, 0, size, *out)
+        return _joined(out, n, k, glossy)
     half = _half_row_kernel(p4)
-    n0, n1 = pool.executor().map(lambda rows: _vpl_kernel(*args, *rows, *out),
-                                   ((0, half), (half, size)))
+    (n0, k0), (n1, k1) = pool.executor().map(lambda rows: _vpl_kernel(*args, glossy, *rows,
+                                                                          *out),
+                                               ((0, half), (half, size)))
     if n0 < half * size and n1:
-        _move_rows_kernel(*out, half * size, n0, n1)
-    return tuple(a[:n0 + n1] for a in out)
+        _move_rows_kernel(*out[:4], half * size, n0, n1)
+    if glossy and k0 < half * size and k1:
+        _move_rows_kernel(*out[4:8], half * size, k0, k1)
+        out[8][k0:k0 + k1] = out[8][half * size:half * size + k1].copy()
+    return _joined(out, n0 + n1, k0 + k1, glossy)
+
+
+def _joined(out: tuple, n: int, k: int, glossy: bool) -> tuple:
+    """The first ``n`` VPLs of out[:4], then (glossy) the first ``k`` mirror VPLs of out[4:8]
+    and the lift (rsm.view_vpls)."""
+    if not glossy:
+        return tuple(a[:n] for a in out[:4])
+    return tuple(np.concatenate((a[:n], b[:k])) for a, b in
+                 zip((*out[:4], np.zeros((n, 3))), out[4:]))
 
 
 @jit.kernel
@@ -77,14 +94,15 @@ def _move_rows_kernel(pos, nrm, flux, area, src, dst, count):
 
 @jit.kernel
 def _vpl_kernel(p4, n4, reflectance, origin, ortho, tan_half, half_extent, right, up, fwd, eye,
-                axis, kind, power, cos_half, smooth, color, size, row0, row1, pos, nrm, flux,
-                area):
+                axis, kind, power, cos_half, smooth, color, size, glossy, row0, row1, pos, nrm,
+                flux, area, mpos, mnrm, mflux, marea, mlift):
     """One pass over rows row0..row1-1 of a view's texels (rows top-first, as ``p4`` is given):
     the VPL of every covered texel that reflects a finite, non-zero flux, with the formulas of
     texel_rays, texel_flux and lights.intensity (point, spot cone smoothstep, area cosine; sun:
     irradiance ``power`` times the texel area), written in texel order into pos, nrm, flux,
-    area from row row0 * size on; returns how many. The texel's reflectance is its triangle's
-    (Rasterizer.triangles). Per-row and per-column terms are hoisted and divisions turned into
+    area from row row0 * size on; ``glossy``: also each texel's mirror VPL (rsm.mirror_vpls)
+    into mpos, mnrm, mflux, marea, mlift likewise. Returns how many of each. The texel's reflectance
+    is its triangle's (Rasterizer.triangles). Per-row and per-column terms are hoisted and divisions turned into
     products where that moves the result by a few ulps."""
     texel_area = (2.0 * half_extent / size) * (2.0 * half_extent / size)
     texel_solid = (2.0 * tan_half / size) * (2.0 * tan_half / size)
@@ -96,6 +114,7 @@ def _vpl_kernel(p4, n4, reflectance, origin, ortho, tan_half, half_extent, right
     for col in range(size):
         us[col] = ((col + 0.5) / size * 2.0 - 1.0) * tan_half
     n = row0 * size
+    k = row0 * size
     for row in range(row0, row1):
         v = (1.0 - (row + 0.5) / size * 2.0) * tan_half
         vv = 1.0 + v * v
@@ -109,7 +128,10 @@ def _vpl_kernel(p4, n4, reflectance, origin, ortho, tan_half, half_extent, right
             r0 = np.float64(reflectance[tri, 0])
             r1 = np.float64(reflectance[tri, 1])
             r2 = np.float64(reflectance[tri, 2])
-            if not max(r0, max(r1, r2)) > 0:
+            s0 = np.float64(reflectance[tri, 3]) if glossy else 0.0
+            s1 = np.float64(reflectance[tri, 4]) if glossy else 0.0
+            s2 = np.float64(reflectance[tri, 5]) if glossy else 0.0
+            if not max(max(r0, max(r1, r2)), max(s0, max(s1, s2))) > 0:
                 continue
             px = np.float64(p4[row, col, 0]) + origin[0]
             py = np.float64(p4[row, col, 1]) + origin[1]
@@ -117,6 +139,7 @@ def _vpl_kernel(p4, n4, reflectance, origin, ortho, tan_half, half_extent, right
             nx = np.float64(n4[row, col, 0])
             ny = np.float64(n4[row, col, 1])
             nz = np.float64(n4[row, col, 2])
+            ix, iy, iz = ax, ay, az  # the incident direction (a sun's axis)
             if ortho:
                 incident = power * texel_area
                 a = texel_area / max(abs(nx * ax + ny * ay + nz * az), 0.05)
@@ -127,6 +150,7 @@ def _vpl_kernel(p4, n4, reflectance, origin, ortho, tan_half, half_extent, right
                 dy = (u * right[1] + by) * inv_root
                 dz = (u * right[2] + bz) * inv_root
                 solid = texel_solid * (inv_root * inv_root * inv_root)
+                ix, iy, iz = dx, dy, dz
                 if kind == 0:
                     strength = point
                 else:
@@ -143,6 +167,23 @@ def _vpl_kernel(p4, n4, reflectance, origin, ortho, tan_half, half_extent, right
                 tx, ty, tz = px - eye[0], py - eye[1], pz - eye[2]
                 a = (solid * (tx * tx + ty * ty + tz * tz)
                      / max(abs(nx * dx + ny * dy + nz * dz), 0.05))
+            if glossy:
+                g0 = incident * s0 * color[0]
+                g1 = incident * s1 * color[1]
+                g2 = incident * s2 * color[2]
+                dn = ix * nx + iy * ny + iz * nz
+                if (dn < 0 and max(g0, max(g1, g2)) > 0 and np.isfinite(g0)
+                        and np.isfinite(g1) and np.isfinite(g2)):
+                    mpos[k, 0], mpos[k, 1], mpos[k, 2] = px, py, pz
+                    mnrm[k, 0] = ix - 2.0 * dn * nx
+                    mnrm[k, 1] = iy - 2.0 * dn * ny
+                    mnrm[k, 2] = iz - 2.0 * dn * nz
+                    mflux[k, 0], mflux[k, 1], mflux[k, 2] = g0, g1, g2
+                    mlift[k, 0] = nx - mnrm[k, 0]
+                    mlift[k, 1] = ny - mnrm[k, 1]
+                    mlift[k, 2] = nz - mnrm[k, 2]
+                    marea[k] = a
+                    k += 1
             f0 = incident * r0 * color[0]
             f1 = incident * r1 * color[1]
             f2 = incident * r2 * color[2]
@@ -155,4 +196,4 @@ def _vpl_kernel(p4, n4, reflectance, origin, ortho, tan_half, half_extent, right
             flux[n, 0], flux[n, 1], flux[n, 2] = f0, f1, f2
             area[n] = a
             n += 1
-    return n - row0 * size
+    return n - row0 * size, k - row0 * size

@@ -75,7 +75,7 @@ def render(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats | None = N
             # later samples' skips (the shadow maps the first sample rendered, reused) are
             # not this render's decisions: only their times and drops are kept
             sub = stats if i == j == 0 else Stats()
-            samples = _render_samples(engine, scene, lpv, sub, proj)
+            samples = _render_samples(engine, scene, lpv, sub, proj, 1.0 / s)
             if sub is not stats:
                 for k, v in sub.ms.items():
                     stats.ms[k] = stats.ms.get(k, 0.0) + v
@@ -90,9 +90,10 @@ def render(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats | None = N
 
 
 def _render_samples(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats,
-                    projection: np.ndarray) -> dict:
+                    projection: np.ndarray, footprint: float = 1.0) -> dict:
     """The passes of one sample per pixel through the camera ``projection`` (render's
-    sub-pixel offsets move it)."""
+    sub-pixel offsets move it); a textured albedo is integrated over each sample's cell,
+    ``footprint`` pixels a side (Rasterizer.gbuffer)."""
     w, h = scene.camera.resolution
     color = np.zeros((h, w, 3), np.float32)
     diff_dir = np.zeros((h, w, 3), np.float32)
@@ -100,8 +101,8 @@ def _render_samples(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats,
     if scene.triangle_count:
         lo, hi = engine.upload(scene, stats)  # the LPV box: shadow maps cover it, not outliers
         with Timer(stats, "gbuffer"):
-            mask, pos, nrm, albedo, receiver = engine.raster.gbuffer(scene.camera.view,
-                                                                     projection, w, h)
+            mask, pos, nrm, albedo, receiver = engine.raster.gbuffer(
+                scene.camera.view, projection, w, h, footprint)
             color[mask] = albedo
         with Timer(stats, "direct"):
             e_dir = None

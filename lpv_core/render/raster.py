@@ -126,6 +126,30 @@ TEXTURED_RSM_SHADERS = _with_barycentrics(RSM_VERTEX_SHADER, RSM_FRAGMENT_SHADER
                                  "vec4(v_bary, 0.0, 0.0)")
 
 
+class _PixelRays:
+    """The camera rays through points of the covered pixels' cells: world origin and direction
+    from unprojecting the near and far planes (perspective and orthographic alike)."""
+
+    def __init__(self, view, projection, width: int, height: int, covered, footprint: float):
+        self.inv = np.linalg.inv(np.asarray(projection, np.float64) @ np.asarray(view, np.float64))
+        r, c = np.nonzero(covered)  # rows top-first
+        self.x = (c + 0.5) * (2.0 / width) - 1.0
+        self.y = 1.0 - (r + 0.5) * (2.0 / height)
+        self.step = (footprint * 2.0 / width, footprint * 2.0 / height)
+
+    def at(self, rows: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(origins, directions) (len(rows), K, 3) through the cells' points ``offsets``
+        (K, 2) in cell units from the centres."""
+        x = self.x[rows, None] + offsets[None, :, 0] * self.step[0]
+        y = self.y[rows, None] + offsets[None, :, 1] * self.step[1]
+        ends = []
+        for z in (-1.0, 1.0):
+            h = (self.inv[:, 0] * x[..., None] + self.inv[:, 1] * y[..., None]
+                 + self.inv[:, 2] * z + self.inv[:, 3])
+            ends.append(h[..., :3] / h[..., 3:])
+        return ends[0], ends[1] - ends[0]
+
+
 def gl_context():
     """The process's standalone moderngl context (EGL headless, else the platform default)."""
     global _CTX
@@ -190,14 +214,20 @@ class Rasterizer:
         self.texture_store = textures.Store()
         self.albedo = np.zeros((0, 3), np.float32)
         self._textured: dict = {}
+        # textures.view_shares of the upload (None: none) and, with it or a surface, the
+        # triangles' world corners (T, 3, 3) float64 the footprint rays meet
+        self.shares = self.corners = None
+
 
     def upload(self, positions, normals, albedo, reflectance, key=None, receiver=None,
-               origin=None, surface: textures.Layout | None = None) -> None:
+               origin=None, surface: textures.Layout | None = None,
+               shares: tuple | None = None) -> None:
         """Upload (T,3,3) corners and normals with (T,3) per-triangle colours and an optional
         (T,) receiver flag (default: every triangle receives GI). Positions are kept relative
         to ``origin`` (default: the centre of the vertices' bounds) for float32 precision.
         ``surface`` (textures.layout): the textures and corner colours the albedo and the
-        GI reflectance take per point; its textures are fitted and kept per digest."""
+        GI reflectance take per point; its textures are fitted and kept per digest.
+        ``shares`` (textures.view_shares): the Diffuse Color's view-angle share per triangle."""
         if key is not None and key == self._key:
             return
         self.surface = None if surface is None else textures.Surface(surface,
@@ -230,7 +260,9 @@ class Rasterizer:
             self._rsm_vao = self.ctx.vertex_array(
                 self.rsm_program, [(self._vbo, "3f 3f 28x", "in_pos", "in_nrm")])
         self.reflectance = np.ascontiguousarray(data[:, 0, 9:12])
-        if self.surface is not None:
+        self.shares = shares
+        self.corners = pos if self.surface is not None or shares is not None else None
+        if self.corners is not None:
             self.albedo = np.ascontiguousarray(data[:, 0, 6:9])
             for name, (program, layout) in self._programs().items():
                 self._textured[name + "_vao"] = None if not t else self.ctx.vertex_array(
@@ -386,12 +418,14 @@ class Rasterizer:
         )
 
     def gbuffer(self, view: np.ndarray, projection: np.ndarray, width: int,
-                height: int) -> tuple:
+                height: int, footprint: float = 0.0) -> tuple:
         """The covered pixels of a camera view, as ``render`` gives them at frame.covered
         (the same numbers, pixels in row-major order, rows top-first): (covered (H, W) bool,
         world positions (M, 3) float64, normals (M, 3) float64, albedo (M, 3) float32,
-        receiver flags (M,) bool). Converts only what is covered, not whole frames."""
-        if self.surface is None or self._vao is None:
+        receiver flags (M,) bool). Converts only what is covered, not whole frames.
+        ``footprint``: the side of each pixel's cell in pixels over which a textured albedo
+        is integrated (textures.footprint_factor; 0: read at the pixel's centre)."""
+        if self.corners is None or self._vao is None:
             pos4, nrm4, alb4 = self.read(view, projection, width, height, False, (0, 1, 2))
         else:  # textured: the fifth target's barycentrics and triangle give the albedo
             program = self._textured["gbuffer"]
@@ -403,11 +437,33 @@ class Rasterizer:
         pos = pos4[covered][:, :3].astype(np.float64) + self.origin
         nrm = nrm4[covered][:, :3].astype(np.float64)
         alb = alb4[covered]
-        if self.surface is None or self._vao is None:
+        if self.corners is None or self._vao is None:
             return covered, pos, nrm, np.ascontiguousarray(alb[:, :3]), alb[:, 3] > 0.5
         b = bary4[covered]
         tri = (b[:, 2].astype(np.int64) - 1) * TRIANGLE_SPLIT + b[:, 3].astype(np.int64)
-        albedo = self.albedo[tri] * self.surface.factor(tri, b[:, :2])
+        albedo = self.albedo[tri]
+        ray = _PixelRays(view, projection, width, height, covered, footprint)
+        if self.surface is not None:
+            factor = self.surface.factor(tri, b[:, :2])
+            if footprint > 0:
+                corners = self.corners
+
+                def bary_at(rows, offsets):
+                    return textures.plane_barycentric(corners[tri[rows]], *ray.at(rows, offsets),
+                                                      b[rows, :2])
+
+                factor, refined = textures.footprint_factor(self.surface, tri, factor,
+                                                            covered, bary_at)
+                self.surface.info["footprint_refined"] = refined
+            albedo = albedo * factor
+        if self.shares is not None:  # the Diffuse Color's share at the view angle
+            rows, table = self.shares
+            r = rows[tri]
+            has = np.flatnonzero(r >= 0)
+            _, d = ray.at(has, np.zeros((1, 2)))
+            d = d[:, 0]
+            cos = (nrm[has] * d).sum(1) / np.maximum(np.linalg.norm(d, axis=1), 1e-30)
+            albedo[has] *= textures.share_at(table, r[has], cos)
         return covered, pos, nrm, albedo, alb[:, 3] > 0.5
 
     def surroundings(self, point, near: float, far: float, size: int = 32):

@@ -296,6 +296,96 @@ class Surface:
         return out
 
 
+# ------------------------------------------------- the pixel footprint and the view angle
+
+# Sub-points per side of a cell whose texture varies (FOOTPRINT_TOL): 8^2 = 64 resolve an
+# edge's area fraction to 1/16 of the step at worst (axis-aligned), far less when oblique; the
+# renderer's 2x2 cells make it 16^2 per pixel, Cycles' 512 samples a noise of up to 2 %.
+FOOTPRINT_SPLIT = 8
+# A pixel is refined where the second difference of the centre factors along a row or a
+# column exceeds half an 8-bit step: zero for a factor linear across the neighbours (a smooth
+# gradient, a bilinear patch), so only texel edges, kinks and curvature are refined.
+FOOTPRINT_TOL = 1.0 / 510.0
+_CHUNK = 1 << 18  # sub-points a step (memory: a few float64 arrays of 3 each)
+
+
+def footprint_factor(surface: Surface, tri: np.ndarray, centre: np.ndarray, covered: np.ndarray,
+                     bary_at) -> tuple:
+    """Surface.factor integrated over each pixel's cell instead of read at its centre: where
+    the centre factors ``centre`` (N, 3) of the ``covered`` (H, W) pixels (row-major) bend
+    across a pixel (its neighbours' second difference in x or y > FOOTPRINT_TOL: a texel edge
+    within a pixel of it), the mean of FOOTPRINT_SPLIT^2 sub-points of its cell replaces it;
+    ``bary_at(rows, offsets (K, 2) in cell units in [-0.5, 0.5])`` gives their barycentrics
+    (len(rows), K, 2) on the pixel's triangle plane. Each read follows the texture's
+    interpolation and extension (sample). Returns (factor (N, 3), pixels refined)."""
+    out = np.array(centre, np.float32, copy=True)
+    img = np.zeros(covered.shape + (4,), np.float32)
+    img[covered, :3] = out
+    img[covered, 3] = surface.layout.albedo_texture[tri] + 2  # 0: uncovered, 1: untextured
+    bend = np.zeros(covered.shape, bool)
+    for axis in (0, 1):  # a neighbour off the image or of another texture: the pixel's own
+        p = np.pad(img, [(1, 1) if a == axis else (0, 0) for a in range(3)])
+        lo, hi = (np.take(p, range(k, k + covered.shape[axis]), axis=axis) for k in (0, 2))
+        lo, hi = (np.where(n[..., 3:] == img[..., 3:], n, img) for n in (lo, hi))
+        bend |= np.abs(lo + hi - 2 * img)[..., :3].max(axis=2) > FOOTPRINT_TOL
+    rows = np.flatnonzero(bend[covered])
+    k = FOOTPRINT_SPLIT
+    g = (np.arange(k) + 0.5) / k - 0.5
+    subs = np.stack(np.meshgrid(g, g, indexing="ij"), -1).reshape(-1, 2)
+    step = max(1, _CHUNK // subs.shape[0])
+    for c in range(0, rows.size, step):
+        r = rows[c:c + step]
+        f = surface.factor(np.repeat(tri[r], subs.shape[0]), bary_at(r, subs).reshape(-1, 2))
+        out[r] = f.reshape(-1, subs.shape[0], 3).mean(axis=1)
+    return out, int(rows.size)
+
+
+def plane_barycentric(corners: np.ndarray, origins: np.ndarray, directions: np.ndarray,
+                      fallback: np.ndarray) -> np.ndarray:
+    """Barycentric coordinates (N, K, 2) where the rays ``origins`` + t ``directions``
+    (N, K, 3) meet the planes of the triangles ``corners`` (N, 3, 3), extrapolated past the
+    triangle; ``fallback`` (N, 2) where a ray misses the plane (parallel, behind, non-finite)."""
+    c = np.asarray(corners, np.float64)
+    e1, e2 = c[:, 1] - c[:, 0], c[:, 2] - c[:, 0]
+    n = np.cross(e1, e2)[:, None]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = ((c[:, None, 0] - origins) * n).sum(2) / (directions * n).sum(2)
+        ok = np.isfinite(t) & (t > 0)
+        p = origins + np.where(ok, t, 0.0)[..., None] * directions - c[:, None, 0]
+        d11, d12, d22 = (e1 * e1).sum(1), (e1 * e2).sum(1), (e2 * e2).sum(1)
+        det = (d11 * d22 - d12 * d12)[:, None]
+        p1, p2 = (p * e1[:, None]).sum(2), (p * e2[:, None]).sum(2)
+        b = np.stack([(d22[:, None] * p1 - d12[:, None] * p2) / det,
+                      (d11[:, None] * p2 - d12[:, None] * p1) / det], axis=2)
+    ok &= np.isfinite(b).all(2)
+    return np.where(ok[..., None], b, np.asarray(fallback, np.float64)[:, None])
+
+
+def view_shares(materials: list, material_index) -> tuple | None:
+    """(per-triangle row (T,) int32, -1 none; table (S, K, 3) float32) of the materials'
+    diffuse_share over model.SHARE_COS, or None when no material has one."""
+    rows = [k for k, m in enumerate(materials) if getattr(m, "diffuse_share", None) is not None]
+    if not rows:
+        return None
+    ids = np.full(len(materials) + 1, -1, np.int32)
+    ids[rows] = np.arange(len(rows))
+    table = np.stack([np.asarray(materials[k].diffuse_share, np.float32).reshape(-1, 3)
+                      for k in rows])
+    return ids[np.asarray(material_index, np.int64)], table
+
+
+def share_at(table: np.ndarray, rows: np.ndarray, cos_view: np.ndarray) -> np.ndarray:
+    """(N, 3) diffuse share of rows ``rows`` (N,) of ``table`` (S, K, 3) at ``cos_view`` (N,):
+    linear in the cosine between model.SHARE_COS, held at its ends."""
+    from .model import SHARE_COS
+
+    grid = np.asarray(SHARE_COS, np.float64)
+    x = np.clip(np.nan_to_num(np.abs(cos_view), nan=1.0), grid[0], grid[-1])
+    i = np.clip(np.searchsorted(grid, x) - 1, 0, grid.size - 2)
+    t = ((x - grid[i]) / (grid[i + 1] - grid[i]))[:, None]
+    return ((1.0 - t) * table[rows, i] + t * table[rows, i + 1]).astype(np.float32)
+
+
 def barycentric(corners: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Barycentric coordinates (N, 2) of corners 1 and 2 of ``points`` (N, 3) in the
     triangles ``corners`` (N, 3, 3) (the points' projection onto each triangle's plane)."""

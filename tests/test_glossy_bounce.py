@@ -1,0 +1,224 @@
+"""The glossy bounce of metals and Glossy BSDFs: the RSM's mirror VPLs (rsm.mirror_vpls and the
+compiled twin), their energy against the analytic sun-on-a-plane flux, the light they put on a
+diffuse floor beside a metal wall, and the glossy reflectance the extraction gives."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from lpv_core import engine, lookup, rsm
+from lpv_core.runtime import jit
+from lpv_core.scene import GISettings
+from lpv_core.scene.model import Light, Material, make_scene
+from tools.core_scenes import light_matrix
+
+SPEC = np.array([0.5, 0.7, 0.9], np.float32)
+
+
+def quad(lo, hi, axis: int, at: float, flip: bool = False) -> np.ndarray:
+    """Two triangles (2, 3, 3) of the rectangle [lo, hi] of the other two axes at ``at``."""
+    a, b = [k for k in range(3) if k != axis]
+    corners = []
+    for u, v in ((lo[0], lo[1]), (hi[0], lo[1]), (hi[0], hi[1]), (lo[0], hi[1])):
+        p = np.zeros(3)
+        p[axis], p[a], p[b] = at, u, v
+        corners.append(p)
+    tris = np.array([[corners[0], corners[1], corners[2]], [corners[0], corners[2], corners[3]]])
+    return tris[:, ::-1] if flip else tris
+
+
+def sun_rsm(specular, resolution: int = 256, compiled: bool = False):
+    """The RSM of a sun (3 W/m^2 along ``SUN_DIR``) on a 4 x 4 m plane z = 0 of albedo 0."""
+    mat = Material("metal", np.zeros(3, np.float32), specular=np.asarray(specular, np.float32))
+    sun = Light("Sun", "SUN", light_matrix((0.0, 0.0, 5.0), SUN_DIR), power=3.0)
+    scene = make_scene(quad((-2, -2), (2, 2), 2, 0.0), materials=[mat], lights=[sun])
+    eng = engine.Engine()
+    eng.upload(scene, engine.Stats())
+    bounds = eng.lpv_bounds(scene)
+    if compiled:
+        assert jit.enabled()
+        return rsm.render_rsm(eng.raster, sun, bounds, resolution), sun
+    with jit.disabled():
+        return rsm.render_rsm(eng.raster, sun, bounds, resolution), sun
+
+
+SUN_DIR = np.array([0.3, 0.2, -1.0]) / np.linalg.norm([0.3, 0.2, -1.0])
+
+
+@pytest.mark.parametrize("compiled", [False, True])
+def test_mirror_vpls_of_a_sunlit_metal_plane_carry_incident_flux_times_specular(compiled):
+    """Incident flux E A cos(theta) (16 m^2 at the sun's cosine) x the glossy reflectance,
+    every VPL along the mirror direction, lifted back onto the plane's normal."""
+    if compiled:
+        pytest.importorskip("numba")
+    got, sun = sun_rsm(SPEC, compiled=compiled)
+    assert got.count > 1000 and got.lift is not None
+    expected = sun.power * 16.0 * abs(SUN_DIR[2]) * SPEC
+    np.testing.assert_allclose(got.flux.sum(axis=0), expected, rtol=0.01)
+    mirror = SUN_DIR * [1.0, 1.0, -1.0]
+    np.testing.assert_allclose(got.normal, np.broadcast_to(mirror, got.normal.shape), atol=1e-6)
+    np.testing.assert_allclose(got.normal + got.lift, np.broadcast_to([0, 0, 1.0], got.normal.shape),
+                               atol=1e-6)
+    np.testing.assert_allclose(got.position[:, 2], 0.0, atol=1e-5)
+
+
+def test_compiled_mirror_vpls_match_numpy():
+    """Diffuse and mirror VPLs of a plane with both, in the same order, through both paths."""
+    pytest.importorskip("numba")
+    for res in (256, 32):  # two threads, and one below SPLIT_MIN
+        ref, _ = sun_rsm(SPEC, res)
+        got, _ = sun_rsm(SPEC, res, compiled=True)
+        assert got.count == ref.count > 0
+        for f in ("position", "normal", "flux", "area", "lift"):
+            a, b = getattr(got, f), getattr(ref, f)
+            np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * np.abs(b).max(), err_msg=f)
+
+
+def test_no_specular_makes_no_mirror_vpls():
+    """Without glossy reflectance the RSM is the diffuse one: no lift, no extra VPLs."""
+    got, _ = sun_rsm(np.zeros(3))
+    assert got.count == 0 and got.lift is None
+
+
+def wall_scene(specular) -> tuple:
+    """A 4 x 4 m floor z = 0 (diffuse, not a caster: it bounces nothing itself) beside a
+    metal wall x = 1 facing -x (albedo 0), a 400 W point light at (0, 0, 2.5); bounces 1."""
+    floor = quad((-3, -2), (1, 2), 2, 0.0)
+    wall = quad((-2, 0), (2, 2), 0, 1.0)
+    mats = [Material("floor", np.full(3, 0.8, np.float32)),
+            Material("metal", np.zeros(3, np.float32), specular=np.asarray(specular, np.float32))]
+    lamp = Light("Lamp", "POINT", light_matrix((0.0, 0.0, 2.5), (0, 0, -1)), power=400.0)
+    settings = GISettings(grid_resolution=24, cascades=1, cascades_auto=False)
+    scene = make_scene(np.concatenate([floor, wall]), material_index=[0, 0, 1, 1],
+                       materials=mats, lights=[lamp], settings=settings,
+                       caster=[False, False, True, True])
+    return scene, lamp
+
+
+def floor_indirect(scene, points) -> np.ndarray:
+    res = engine.Engine().update(scene)
+    if res.values is None:
+        return np.zeros((len(points), 3))
+    up = np.tile([0.0, 0.0, 1.0], (len(points), 1))
+    e = lookup.irradiance(res.grid, res.values, points, up, angular=scene.settings.angular,
+                          visibility=res.visibility)
+    for g, v, vis in res.fine:
+        e += lookup.irradiance(g, v, points, up, angular=scene.settings.angular, visibility=vis)
+    return e
+
+
+def test_floor_beside_a_metal_wall_gets_the_light_the_wall_mirrors():
+    """The floor's indirect irradiance is the wall's mirror image of the lamp (intensity x
+    glossy reflectance from (2, 0, 2.5), where the reflected ray meets the wall): present with
+    the glossy reflectance, zero without it (the floor is no caster, the wall has albedo 0)."""
+    xs, ys = np.meshgrid(np.linspace(0.0, 0.7, 8), np.linspace(-0.6, 0.6, 7))
+    pts = np.c_[xs.ravel(), ys.ravel(), np.full(xs.size, 1e-3)]
+    scene, lamp = wall_scene(SPEC)
+    got = floor_indirect(scene, pts).mean(axis=0)
+    d = pts - [2.0, 0.0, 2.5]
+    dist2 = (d * d).sum(axis=1)
+    analytic = (lamp.power / (4 * np.pi) * 2.5 / dist2 ** 1.5).mean() * SPEC
+    print(f"\nfloor indirect {got}, mirror-image analytic {analytic}")
+    assert got.min() > 0
+    np.testing.assert_allclose(got / analytic, 1.0, atol=0.5)  # coarse grid, cosine lobe
+    none = floor_indirect(wall_scene(np.zeros(3))[0], pts)
+    assert not none.any()
+
+
+def test_worker_scene_file_keeps_the_glossy_reflectance(tmp_path):
+    from lpv_core import worker
+
+    scene, _ = wall_scene(SPEC)
+    path = str(tmp_path / "scene.npz")
+    worker.save_scene(path, scene)
+    back = worker.load_scene(path)
+    assert back.materials[1].specular.dtype == np.float32
+    np.testing.assert_array_equal(back.materials[1].specular, SPEC)
+    assert not back.materials[0].specular.any()
+
+
+def test_make_scene_repairs_bad_glossy_values():
+    mats = [Material("bad", specular=np.array([np.nan, -1.0, 0.5], np.float32))]
+    scene = make_scene(quad((0, 0), (1, 1), 2, 0.0), materials=mats)
+    np.testing.assert_array_equal(scene.materials[0].specular, [0.0, 0.0, 0.5])
+    assert scene.dropped["materials_with_invalid_values_defaulted"] == 1
+    plain = make_scene(quad((0, 0), (1, 1), 2, 0.0), materials=[Material("plain")])
+    assert plain.specular_per_triangle() is None
+    scaled = dataclasses.replace(scene.materials[0], bleed_intensity=2.0)
+    np.testing.assert_allclose(dataclasses.replace(scene, materials=[scaled])
+                               .specular_per_triangle(), [[0.0, 0.0, 1.0]] * 2)
+
+
+# ---------------------------------------------------------------------------- extraction
+
+
+def f82_numeric(f0: np.ndarray, tint: np.ndarray) -> np.ndarray:
+    """2 int_0^1 F(mu) mu dmu of Cycles' fresnel_f82 with fresnel_f82tint_B, by quadrature."""
+    mu = (np.arange(20000) + 0.5) / 20000
+    f = 6.0 / 7.0
+    b = (f0 + (1 - f0) * f ** 5) * 7.0 / f ** 6 * (1 - tint)
+    fr = np.clip(f0[:, None] + (1 - f0[:, None]) * (1 - mu) ** 5
+                 - b[:, None] * mu * (1 - mu) ** 6, 0, 1)
+    return 2 * (fr * mu).mean(axis=1)
+
+
+@pytest.mark.bpy
+def test_extraction_gives_the_glossy_reflectance():
+    bpy = pytest.importorskip("bpy")
+    from lpv_addon.scene_io import materials
+
+    base = np.array([0.8, 0.5, 0.2])
+
+    def new(name):
+        mat = bpy.data.materials.new(name)
+        if mat.node_tree is None:
+            mat.use_nodes = True
+        nt = mat.node_tree
+        for node in list(nt.nodes):
+            if node.bl_idname != "ShaderNodeOutputMaterial":
+                nt.nodes.remove(node)
+        out = next(n for n in nt.nodes if n.bl_idname == "ShaderNodeOutputMaterial")
+        return mat, nt, out
+
+    def info(mat):
+        return materials.material_info(mat).material
+
+    mat, nt, out = new("metal")
+    p = nt.nodes.new("ShaderNodeBsdfPrincipled")
+    p.inputs["Base Color"].default_value = (*base, 1.0)
+    p.inputs["Metallic"].default_value = 1.0
+    nt.links.new(p.outputs[0], out.inputs["Surface"])
+    m = info(mat)
+    assert not m.albedo.any()
+    np.testing.assert_allclose(m.specular, base + (1 - base) / 21, rtol=1e-6)
+    np.testing.assert_allclose(m.specular, f82_numeric(base, np.ones(3)), rtol=1e-4)
+    p.inputs["Metallic"].default_value = 0.0
+    assert not info(mat).specular.any()  # dielectric specular left out
+    p.inputs["Metallic"].default_value = 1.0
+
+    g = nt.nodes.new("ShaderNodeBsdfGlossy")
+    g.inputs["Color"].default_value = (0.3, 0.6, 0.9, 1.0)
+    nt.links.new(g.outputs[0], out.inputs["Surface"])
+    np.testing.assert_allclose(info(mat).specular, [0.3, 0.6, 0.9], rtol=1e-6)
+    mix = nt.nodes.new("ShaderNodeMixShader")
+    mix.inputs[0].default_value = 0.25
+    nt.links.new(p.outputs[0], mix.inputs[1])
+    nt.links.new(g.outputs[0], mix.inputs[2])
+    nt.links.new(mix.outputs[0], out.inputs["Surface"])
+    np.testing.assert_allclose(info(mat).specular,
+                               0.75 * (base + (1 - base) / 21) + 0.25 * np.array([0.3, 0.6, 0.9]),
+                               rtol=1e-6)
+
+    metal = nt.nodes.new("ShaderNodeBsdfMetallic")
+    metal.inputs["Base Color"].default_value = (*base, 1.0)
+    metal.inputs["Edge Tint"].default_value = (0.5, 0.9, 1.0, 1.0)
+    nt.links.new(metal.outputs[0], out.inputs["Surface"])
+    np.testing.assert_allclose(info(mat).specular, f82_numeric(base, np.array([0.5, 0.9, 1.0])),
+                               rtol=1e-4)
+
+    d = nt.nodes.new("ShaderNodeBsdfDiffuse")
+    nt.links.new(d.outputs[0], out.inputs["Surface"])
+    assert not info(mat).specular.any()
