@@ -223,6 +223,7 @@ class Engine:
                                scene.reflectance_per_triangle(),
                                receiver=None if scene.receiver is None else scene.flag("receiver"),
                                origin=origin, surface=surface,
+                               specular=scene.specular_per_triangle(),
                                shares=textures.view_shares(scene.materials,
                                                            scene.material_index))
             if self.raster.surface is not None and stats is not None:
@@ -521,7 +522,8 @@ class Engine:
             stats.skip("injection", f"light '{light.name}'",
                        "materials changed, but none its RSM sees: grids reused")
             return cached[0], cached[1], 0
-        totals = run.propagate(rsm.position, rsm.normal, rsm.flux, [d.keep for d in reach])
+        totals = run.propagate(rsm.position, rsm.normal, rsm.flux, [d.keep for d in reach],
+                               rsm.lift)
         if scene.settings.bounces > 1:
             totals = self._more_bounces(scene, run, totals)
         # the flux itself while the kept arrays fit in FLUX_KEPT (comparing it is cheaper than
@@ -686,7 +688,9 @@ class Engine:
                 counts.append(int(own.sum()))
         rsm = RSM(light, *(np.concatenate([getattr(p, f)[own] for p, own in parts])
                            for f in ("position", "normal", "flux", "area")),
-                  sum(p.texels for p, _ in parts))
+                  sum(p.texels for p, _ in parts),
+                  None if parts[0][0].lift is None
+                  else np.concatenate([p.lift[own] for p, own in parts]))
         stats.info.setdefault("sun_rsm_per_cascade", {})[light.name] = counts
         return rsm, _vpl_sample(rsm)
 
@@ -777,9 +781,11 @@ class _ChainRun:
         self.backend, self.stats = backend, stats
         self.iterations: list = []  # steps run per propagation ("sweep": solved exactly)
 
-    def propagate(self, positions, normals, flux, reach: list | None = None) -> list:
+    def propagate(self, positions, normals, flux, reach: list | None = None,
+                  lift=None) -> list:
         """Propagated grids (one per cascade) of the VPLs (N, 3) x3; ``reach[c]`` False: the
-        planner found that these VPLs cannot land in cascade c."""
+        planner found that these VPLs cannot land in cascade c. ``lift`` (rsm.RSM.lift): each
+        VPL injected from ``lift`` x the injection offset further on (its surface's side)."""
         chain, stats, be, settings = self.chain, self.stats, self.backend, self.settings
         last = len(chain) - 1
         n = positions.shape[0]
@@ -794,8 +800,9 @@ class _ChainRun:
             if sel.size == n:  # all of them, in order (one cascade): no copies
                 sel = slice(None)
             with Timer(stats, "injection"):
-                injected = _inject(be, g, positions, normals, flux, self.visibilities[c],
-                                   sel)
+                at = positions if lift is None else positions + lift * (
+                    INJECTION_OFFSET * g.cell_size)
+                injected = _inject(be, g, at, normals, flux, self.visibilities[c], sel)
                 passing = None
                 if carry is not None:  # light leaving the finer cascade: no surface's
                     passing = g.zeros()
@@ -849,12 +856,14 @@ def reflectance_key(scene: Scene) -> str:
     what multiplies it per point: the textures' digests and modes, UVs and corner colours."""
     lay = textures.layout(scene.materials, scene.material_index, scene.uvs,
                           scene.corner_colors)
+    glossy = scene.specular_per_triangle()  # the mirror VPLs' reflectance (None: none)
+    extra = () if glossy is None else (glossy,)
     if lay is None:
-        return _digest(scene.reflectance_per_triangle())
+        return _digest(scene.reflectance_per_triangle(), *extra)
     modes = repr([(t.interpolation, t.extension) for t in lay.textures] + lay.digests)
     return _digest(scene.reflectance_per_triangle(), modes, lay.gi_texture, lay.gi_corners,
                    "" if lay.uvs is None else lay.uvs,
-                   "" if lay.corner_colors is None else lay.corner_colors)
+                   "" if lay.corner_colors is None else lay.corner_colors, *extra)
 
 
 def same_vpls(flux, other) -> bool:
@@ -928,6 +937,7 @@ def _inject(backend, grid: Grid, positions, normals, flux, visibility, sel=slice
                           **kw)
 
 
+INJECTION_OFFSET = 0.5  # cells: injection.inject's offset along the VPL normal
 FOCUS_PIXELS = 64  # longest side of the G-buffer that finds what the camera sees
 SURROUND_PIXELS = 32  # cube map side of what the camera's eye sees all around (surroundings)
 VPL_SAMPLE = 4096  # VPLs per light kept in LPVResult.vpls for debug views

@@ -171,7 +171,7 @@ def load_scene(path: str, held: dict | None = None) -> Scene:
     for m in meta["materials"]:
         tex = m.pop("texture", None)
         material = _dataclass(Material, m, {"albedo": np.float32, "bleed_color": np.float32,
-                                            "emission": np.float32,
+                                            "emission": np.float32, "specular": np.float32,
                                             "diffuse_share": np.float32})
         if tex is not None:
             pixels = known.get(tex["digest"])

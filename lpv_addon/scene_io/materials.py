@@ -475,6 +475,64 @@ def layer_transmitted(roughness: float, f0: float) -> float:
     return float(np.interp(r, _ROUGHNESS, col))
 
 
+def f82_average(f0, tint) -> np.ndarray:
+    """Cosine-weighted hemispherical average of Cycles' F82-tint conductor Fresnel of normal
+    reflectance ``f0`` and edge ``tint`` (Cycles' fresnel_f82_Fss and fresnel_f82tint_B): a
+    metal's glossy albedo under uniform light, as its multiscatter GGX keeps it (f0 + (1 -
+    f0) / 21 for a white tint, which makes F82-tint Schlick's Fresnel)."""
+    f0, tint = (np.clip(np.asarray(v, np.float64), 0.0, 1.0) for v in (f0, tint))
+    f = 6.0 / 7.0
+    b = (f0 + (1.0 - f0) * f ** 5) * (7.0 / f ** 6) * (1.0 - tint)
+    return np.clip(f0 + (1.0 - f0) / 21.0 - b / 126.0, 0.0, 1.0)
+
+
+def glossy_reflectance(ev: _Evaluator, socket, stack=(), depth: int = 0) -> np.ndarray:
+    """The share of incident flux the shader feeding ``socket`` reflects glossily (RGB; the
+    RSM's mirror VPLs): Principled's metal part (metallic x alpha x coat x f82_average of the
+    base colour and specular tint), Glossy BSDF's colour, Metallic BSDF's f82_average,
+    weighted through Mix and Add Shader like the diffuse rule. Dielectric specular layers
+    (F0 ~ 0.04) are left out; colours that vary take their mean (reported)."""
+    node, _, stack = ev.resolve(socket, stack)
+    zero = np.zeros(3)
+    if node is None or depth > 32:
+        return zero
+    kind, inp = node.bl_idname, node.inputs
+    if kind in ("ShaderNodeMixShader", "ShaderNodeAddShader"):
+        a, b = (glossy_reflectance(ev, x, stack, depth + 1) for x in inp if x.type == "SHADER")
+        if kind == "ShaderNodeAddShader":
+            return a + b
+        f = float(np.clip(ev.value(inp[0], stack), 0.0, 1.0))
+        return (1.0 - f) * a + f * b
+    if kind == "ShaderNodeBsdfAnisotropic":  # Glossy BSDF: its colour, no Fresnel
+        return ev.mean(inp["Color"], stack, "glossy")
+    if kind == "ShaderNodeBsdfMetallic":
+        if getattr(node, "fresnel_type", "F82") != "F82":
+            n, k = ev.mean(inp["IOR"], stack, "IOR"), ev.mean(inp["Extinction"], stack, "k")
+            ev.note(f"'{node.name}': physical conductor as F82 of its normal reflectance")
+            return f82_average(((n - 1) ** 2 + k * k) / ((n + 1) ** 2 + k * k), 1.0)
+        return f82_average(ev.mean(inp["Base Color"], stack, "metal"),
+                           ev.mean(inp["Edge Tint"], stack, "edge tint"))
+    if kind != "ShaderNodeBsdfPrincipled":
+        return zero
+    metallic = float(np.clip(ev.value(inp["Metallic"], stack), 0.0, 1.0))
+    if metallic == 0:
+        return zero
+    alpha = float(np.clip(ev.value(inp["Alpha"], stack), 0.0, 1.0)) if "Alpha" in inp else 1.0
+    coat = float(np.clip(ev.value(inp["Coat Weight"], stack), 0.0, 1.0)) \
+        if "Coat Weight" in inp else 0.0
+    over = 1.0
+    if coat > 0:  # the coat's albedo and tint over the metal, as principled() puts them
+        ior = max(ev.value(inp["Coat IOR"], stack), 1e-6)
+        albedo = 1.0 - layer_transmitted(ev.value(inp["Coat Roughness"], stack),
+                                         ((ior - 1.0) / (ior + 1.0)) ** 2)
+        over = (1.0 - coat * albedo) * (1.0 - coat + coat * ev.mean(inp["Coat Tint"], stack,
+                                                                      "coat tint"))
+    tint = ev.mean(inp["Specular Tint"], stack, "specular tint") if "Specular Tint" in inp \
+        else 1.0
+    return metallic * alpha * over * f82_average(ev.mean(inp["Base Color"], stack, "metal"),
+                                                 tint)
+
+
 _VIEW: dict = {}  # principled_view.json, read on first use
 
 
@@ -536,12 +594,14 @@ def material_info(mat) -> MaterialInfo:
         return MaterialInfo(core.scene.Material("(none)", np.array(DEFAULT_ALBEDO, np.float32)))
     ev = _Evaluator(mat)
     diffuse, emission = _const(mat.diffuse_color[:3]), np.zeros(3)
+    glossy = np.zeros(3)
     tree = getattr(mat, "node_tree", None)
     use_nodes = tree is not None and (bpy.app.version >= (5, 0, 0) or mat.use_nodes)
     output = _active_output(tree) if use_nodes else None
     if output is not None:
         surface = output.inputs.get("Surface")
         diffuse, emission = ev.shader(surface)
+        glossy = glossy_reflectance(ev, surface)
     m = core.scene.Material(mat.name, np.clip(diffuse.const, 0.0, None).astype(np.float32))
     m.emission = np.clip(np.asarray(emission, np.float64), 0.0, None).astype(np.float32)
     if output is not None and ev.share is not None and getattr(
@@ -549,6 +609,7 @@ def material_info(mat) -> MaterialInfo:
         share = np.broadcast_to(ev.share, (len(core.scene.model.SHARE_COS), 3))
         if diffuse.const.any() and not np.allclose(share, 1.0):  # a Principled's own share
             m.diffuse_share = np.ascontiguousarray(share, np.float32)
+    m.specular = np.clip(np.nan_to_num(glossy), 0.0, None).astype(np.float32)
     info = MaterialInfo(m, color_attribute=diffuse.attr, notes=ev.notes,
                         defaulted_texels=ev.defaulted)
     if diffuse.pixels is not None:

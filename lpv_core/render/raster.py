@@ -208,6 +208,8 @@ class Rasterizer:
         self.origin = np.zeros(3)
         # (T, 3) float32 GI reflectance per uploaded triangle: what read_rsm's indices select
         self.reflectance = np.zeros((0, 3), np.float32)
+        # (T, 3) glossy reflectance per uploaded triangle or None, and the RSM's 6-column table
+        self.specular = self._rsm_table = None
         # Per-point albedo of a textured upload (textures.Surface; None: per triangle), the
         # textures kept per digest, and the textured passes' programs (made on first use)
         self.surface = None
@@ -218,15 +220,15 @@ class Rasterizer:
         # triangles' world corners (T, 3, 3) float64 the footprint rays meet
         self.shares = self.corners = None
 
-
     def upload(self, positions, normals, albedo, reflectance, key=None, receiver=None,
-               origin=None, surface: textures.Layout | None = None,
+               origin=None, surface: textures.Layout | None = None, specular=None,
                shares: tuple | None = None) -> None:
         """Upload (T,3,3) corners and normals with (T,3) per-triangle colours and an optional
         (T,) receiver flag (default: every triangle receives GI). Positions are kept relative
         to ``origin`` (default: the centre of the vertices' bounds) for float32 precision.
         ``surface`` (textures.layout): the textures and corner colours the albedo and the
         GI reflectance take per point; its textures are fitted and kept per digest.
+        ``specular`` (T, 3) glossy reflectance (Scene.specular_per_triangle; None: none).
         ``shares`` (textures.view_shares): the Diffuse Color's view-angle share per triangle."""
         if key is not None and key == self._key:
             return
@@ -260,6 +262,9 @@ class Rasterizer:
             self._rsm_vao = self.ctx.vertex_array(
                 self.rsm_program, [(self._vbo, "3f 3f 28x", "in_pos", "in_nrm")])
         self.reflectance = np.ascontiguousarray(data[:, 0, 9:12])
+        if specular is not None:
+            self.specular = np.asarray(specular, np.float32).reshape(t, 3)
+            self._rsm_table = np.ascontiguousarray(np.hstack([self.reflectance, self.specular]))
         self.shares = shares
         self.corners = pos if self.surface is not None or shares is not None else None
         if self.corners is not None:
@@ -286,6 +291,7 @@ class Rasterizer:
                 obj.release()
         self._vao = self._rsm_vao = self._vbo = None
         self.reflectance = np.zeros((0, 3), np.float32)
+        self.specular = self._rsm_table = None
         self._key = None
 
     def _fbo(self, width: int, height: int, targets: int = 4):
@@ -366,10 +372,13 @@ class Rasterizer:
         """read_rsm's targets and the reflectance table their w indices select: the
         per-triangle table, or on a textured upload each covered texel's own reflectance
         (the triangle's x corner colour x texture at the texel's point, textures.Surface)
-        with the w channels holding the texel's row in it."""
+        with the w channels holding the texel's row in it. With glossy reflectance uploaded
+        the table has 6 columns: the reflectance, then the glossy reflectance."""
         if self.surface is None or self._vao is None:
             pos, nrm = self.read_rsm(view, projection, size, ortho)
-            return pos, nrm, self.reflectance
+            if self.specular is None:
+                return pos, nrm, self.reflectance
+            return pos, nrm, self._rsm_table
         fbo = self._fbo(size, size, 3)
         self._draw(self._textured["rsm"], self._textured["rsm_vao"], fbo, view, projection,
                    ortho)
@@ -377,6 +386,8 @@ class Rasterizer:
         covered = pos[..., 3] > 0.5
         tri = self.triangles(pos[covered], nrm[covered])
         table = self.reflectance[tri] * self.surface.factor(tri, bary[covered][:, :2], gi=True)
+        if self.specular is not None:
+            table = np.hstack([table, self.specular[tri]])
         # copies laid out like the read-back (rows reversed, read-only): the compiled texel
         # pass sees the same array types as untextured maps
         pos, nrm = pos[::-1].copy()[::-1], nrm[::-1].copy()[::-1]

@@ -23,7 +23,6 @@ SHARE_COS = (0.02, 0.04, 0.07, 0.1, 0.15, 0.2, 0.26, 0.33, 0.4, 0.5, 0.6, 0.7, 0
              1.0)
 
 
-
 @dataclass
 class Material:
     """A material as LPV sees it: the diffuse albedo Cycles reports as Diffuse Color (times
@@ -44,6 +43,9 @@ class Material:
     # Colour and strength this material bounces into GI (None: use albedo).
     bleed_color: np.ndarray | None = None
     bleed_intensity: float = 1.0
+    # Glossy (mirror-like) reflectance: the share of incident flux a metal or Glossy BSDF
+    # reflects around the mirror direction (rsm.view_vpls' mirror VPLs); zeros: none.
+    specular: np.ndarray = field(default_factory=lambda: np.zeros(3, np.float32))
 
     def gi_reflectance(self) -> np.ndarray:
         """Reflectance used for injected (bounced) flux: bleed colour x intensity, else albedo."""
@@ -346,6 +348,18 @@ class Scene:
             out = out * self.flag("caster")[:, None].astype(np.float32)
         return out
 
+    def specular_per_triangle(self) -> np.ndarray | None:
+        """Glossy reflectance x GI bleed intensity per triangle (T, 3), 0 for non-casters;
+        None when no caster's material has any (the RSM then makes no mirror VPLs)."""
+        if not any(np.any(np.asarray(m.specular) > 0) for m in self.materials):
+            return None
+        table = np.array([np.asarray(m.specular, np.float32) * np.float32(m.bleed_intensity)
+                          for m in self.materials], np.float32)
+        out = table[self.material_index]
+        if self.caster is not None:
+            out = out * self.flag("caster")[:, None].astype(np.float32)
+        return out if out.any() else None
+
 
 def _material_table(materials: list[Material], attr: str) -> np.ndarray:
     if not materials:
@@ -455,7 +469,7 @@ def make_scene(
 _LIGHT_LOWS = {"color": 0.0, "gi_color": 0.0, "gi_intensity": None, "spot_size": 0.0,
                "spot_blend": 0.0, "radius": 0.0, "size": 0.0, "spread": 0.0, "angle": 0.0}
 _MATERIAL_LOWS = {"albedo": 0.0, "bleed_color": 0.0, "bleed_intensity": 0.0, "emission": 0.0,
-                  "emission_gi_intensity": None, "diffuse_share": 0.0}
+                  "emission_gi_intensity": None, "diffuse_share": 0.0, "specular": 0.0}
 _AREA_LOWS = {"falloff": 0.0, "intensity": 0.0, "tint": 0.0}
 
 
