@@ -150,7 +150,7 @@ def direct(engine, scene, bounds, positions, normals, stats, material: int | Non
     sm = maps(engine, scene, bounds, stats, k)
     e = None
     if world and k in sm.world:
-        e = sky.irradiance(*sm.world[k][1:], positions, normals)
+        e = sky.irradiance(*sm.world[k][1:], positions, normals, pcf=not gi)
     for c, shadow in (sm.clusters[1] if sm.clusters else []):
         if material is None or c.material == material:
             part = emitters.irradiance(c, shadow, positions, normals)

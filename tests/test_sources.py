@@ -372,7 +372,8 @@ def test_world_map_convention_matches_cycles_environment_texture(tmp_path):
 
 def test_compiled_sky_irradiance_is_the_numpy_reference():
     """kernels/sky.py against sky.irradiance's numpy loop (render/direct.py's hard shadow test
-    per direction) on floor and wall points, lit and in the wall's shadow, to rounding."""
+    per direction, and the GI's one tap) on floor and wall points, lit and in the wall's
+    shadow, to rounding."""
     from lpv_core.runtime import jit
 
     if not jit.enabled():
@@ -389,14 +390,15 @@ def test_compiled_sky_irradiance_is_the_numpy_reference():
                 np.c_[rng.uniform(-5, 5, 300), np.zeros(300), rng.uniform(0, 3, 300)]]
     nrm = np.r_[np.tile([0, 0, 1.0], (300, 1)), np.tile([0, -1.0, 0], (300, 1))]
     world = sm.world[sky.DIRECTIONS][1:]
-    got = sky.irradiance(*world, pts, nrm)
-    jit.switch(False)
-    try:
-        want = sky.irradiance(*world, pts, nrm)
-    finally:
-        jit.switch(True)
-    assert (want > 0).all() and (want[:300, 0] < want[:300, 0].max() * 0.9).any()
-    np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12)
+    for pcf in (True, False):
+        got = sky.irradiance(*world, pts, nrm, pcf=pcf)
+        jit.switch(False)
+        try:
+            want = sky.irradiance(*world, pts, nrm, pcf=pcf)
+        finally:
+            jit.switch(True)
+        assert (want > 0).all() and (want[:300, 0] < want[:300, 0].max() * 0.9).any()
+        np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12)
 
 
 def test_an_emitter_whose_back_is_capped_emits_from_its_front_only():

@@ -11,10 +11,10 @@ from ..runtime import jit, pool
 from .direct import _pcf
 
 
-def irradiance(directions, weights, radiance, views, half, depths, positions,
-               normals) -> np.ndarray:
+def irradiance(directions, weights, radiance, views, half, depths, positions, normals,
+               pcf: bool = True) -> np.ndarray:
     """sky.irradiance (M, 3) with the directions' view matrices (K, 4, 4), window half extents
-    (K,) and stacked depth maps (K, R, R) float32, on two threads."""
+    (K,) and stacked depth maps (K, R, R) float32, on two threads; ``pcf`` False: one tap."""
     pos = np.ascontiguousarray(positions, np.float64)
     nrm = np.ascontiguousarray(normals, np.float64)
     out = np.empty((pos.shape[0], 3), np.float64)
@@ -22,13 +22,13 @@ def irradiance(directions, weights, radiance, views, half, depths, positions,
             np.ascontiguousarray(weights, np.float64),
             np.ascontiguousarray(radiance, np.float64),
             np.ascontiguousarray(views, np.float64), np.ascontiguousarray(half, np.float64),
-            depths, out)
+            depths, bool(pcf), out)
     pool.in_halves(lambda sl: _sky_kernel(*args, sl.start, sl.stop), pos.shape[0])
     return out
 
 
 @jit.kernel
-def _sky_kernel(pos, nrm, dirs, weights, rad, views, half, depths, out, m0,
+def _sky_kernel(pos, nrm, dirs, weights, rad, views, half, depths, pcf, out, m0,
                 m1):  # pragma: no cover
     """Points m0..m1-1: den = sum_k w_k c_k, e = sum_k w_k c_k V_k L_k, out = pi e / den
     (c_k = max(0, n.w_k)); direction by direction, so that one map at a time is read (twice
@@ -51,8 +51,17 @@ def _sky_kernel(pos, nrm, dirs, weights, rad, views, half, depths, out, m0,
             ox, oy, oz = (pos[m, 0] + nx * world * 1.5, pos[m, 1] + ny * world * 1.5,
                           pos[m, 2] + nz * world * 1.5)
             d = -(v[2, 0] * ox + v[2, 1] * oy + v[2, 2] * oz + v[2, 3])
-            s = weights[k] * c * _pcf(v, True, half[k], depths[k], res, ox, oy, oz, d,
-                                      world * 1.5)
+            if pcf:
+                vis = _pcf(v, True, half[k], depths[k], res, ox, oy, oz, d, world * 1.5)
+            else:  # sky._one_tap
+                u = (ox * v[0, 0] + oy * v[0, 1] + oz * v[0, 2] + v[0, 3]) / half[k]
+                w = (ox * v[1, 0] + oy * v[1, 1] + oz * v[1, 2] + v[1, 3]) / half[k]
+                vis = 1.0
+                if abs(u) <= 1.0 and abs(w) <= 1.0:
+                    x = min(int((u + 1.0) * 0.5 * res), res - 1)
+                    y = min(int((1.0 - w) * 0.5 * res), res - 1)
+                    vis = 0.0 if d > depths[k, y, x] + world * 1.5 else 1.0
+            s = weights[k] * c * vis
             out[m, 0] += s * rad[k, 0]
             out[m, 1] += s * rad[k, 1]
             out[m, 2] += s * rad[k, 2]
