@@ -178,12 +178,13 @@ def write(r: dict, out: Path, argv: list[str]) -> None:
          f"Cycles' Diffuse Color (an 8-neighbour differing by > {COLOUR_STEP})."), "",
         *table(r), "",
         f"Approximated: {'; '.join(r['approximated']) or 'nothing'}. LPV time {r['lpv_s']:.2f} s.", "",
-        ("Where the Diffuse Color error is: the checker's texel edges (Cycles averages "
-         "a pixel's 1-pixel box over 512 random samples, our default antialias over a 2x2 "
-         "grid: the two colours mix in other proportions), and on the floor a uniform bias of about 1.7 % (ours brighter): "
-         "Cycles' Diffuse Color of a Principled dielectric is the base colour times one minus "
-         "the specular layer's albedo at the view angle, which grows towards grazing, while "
-         "ours takes one value per material."),
+        ("Where the Diffuse Color error was (0.0355 off geometry edges before): the checker's "
+         "texel edges (Cycles integrates each pixel's 1-pixel box, we read the texture at "
+         "2x2 points: now integrated over each sample's cell where the texture bends, "
+         "textures.footprint_factor: 0.0149 alone) and a uniform 1.7 % floor bias (Cycles' "
+         "Diffuse Color of a Principled dielectric falls with the specular layer's albedo "
+         "at the view angle: now Material.diffuse_share, measured on Cycles: 0.0315 alone, "
+         "0.0002 off texel edges)."),
         "",
         ("Where the indirect error is: the light the metal block reflects onto the floor "
          "(Cycles' paths light -> metal -> floor, which LPV's diffuse-only RSM does not "

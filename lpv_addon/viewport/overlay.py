@@ -124,7 +124,29 @@ vec3 albedo_texture(vec2 uv) {
     return sum;
 }
 
+/* textures.footprint_factor over the pixel: the UV's screen derivatives span its cell; where
+   the 4 corners' mean differs from the centre by more than FOOTPRINT_TOL, the mean of
+   FOOTPRINT_SPLIT^2 sub-points (the render tests its neighbours' second difference instead) */
+vec3 albedo_footprint(vec2 uv, vec2 du, vec2 dv) {
+    vec3 c = albedo_texture(uv);
+    vec3 m = 0.25 * (albedo_texture(uv + 0.5 * (du + dv)) + albedo_texture(uv + 0.5 * (du - dv))
+                     + albedo_texture(uv - 0.5 * (du - dv)) + albedo_texture(uv - 0.5 * (du + dv)));
+    vec3 d = abs(m - c);
+    if (max(d.r, max(d.g, d.b)) <= FOOTPRINT_TOL) {
+        return c;
+    }
+    vec3 sum = vec3(0.0);
+    for (int i = 0; i < FOOTPRINT_SPLIT; i++) {
+        for (int j = 0; j < FOOTPRINT_SPLIT; j++) {
+            vec2 o = (vec2(i, j) + 0.5) / float(FOOTPRINT_SPLIT) - 0.5;
+            sum += albedo_texture(uv + o.x * du + o.y * dv);
+        }
+    }
+    return sum / float(FOOTPRINT_SPLIT * FOOTPRINT_SPLIT);
+}
+
 void main() {
+    vec2 du = dFdx(v_uv), dv = dFdy(v_uv);  /* in uniform control flow */
     int res = int(params.x);
     vec3 n = normalize(v_nrm);
     vec3 to_eye = eye.w > 0.5 ? -view_dir.xyz : eye.xyz - v_pos;
@@ -216,7 +238,7 @@ void main() {
     vec3 e = vec3(dot(sr, w01) + dot(sr2, w2), dot(sg, w01) + dot(sg2, w2),
                   dot(sb, w01) + dot(sb2, w2)) + s8 * w8;
     e = max(e, vec3(0.0)) / (cell * cell);
-    vec3 albedo = tex_mode.x > 0.5 ? v_col.rgb * albedo_texture(v_uv) : v_col.rgb;
+    vec3 albedo = tex_mode.x > 0.5 ? v_col.rgb * albedo_footprint(v_uv, du, dv) : v_col.rgb;
     vec3 radiance = e / PI * albedo * v_col.a;
     FragColor = vec4(radiance * params.y, 1.0);
 }
@@ -250,6 +272,9 @@ def _lpv_shader():
         info.sampler(len(SAMPLERS), "FLOAT_2D", "albedo_tex")
         info.fragment_out(0, "VEC4", "FragColor")
         info.vertex_source(VERTEX_SOURCE)
+        tx = core.scene.textures  # the render's footprint rule (albedo_footprint)
+        info.define("FOOTPRINT_SPLIT", str(int(tx.FOOTPRINT_SPLIT)))
+        info.define("FOOTPRINT_TOL", f"{float(tx.FOOTPRINT_TOL):.9g}")
         info.fragment_source(FRAGMENT_SOURCE)
         shader = _SHADERS["lpv"] = gpu.shader.create_from_info(info)
     return shader
