@@ -101,8 +101,11 @@ def lookup(world: World, directions: np.ndarray) -> np.ndarray:
 def suns(directions: np.ndarray) -> list[Light]:
     """One unit SUN light per direction, shining along -w_k: render_shadow_map and the direct
     kernel give it max(0, n.w_k) V_k (hard: softening each over its cell's cone, PCSS, measured
-    worse and 7x slower, docs/decisions.md)."""
-    out = []
+    worse and 7x slower, docs/decisions.md); kept per direction set (the GI's, the pixels')."""
+    key = np.asarray(directions, np.float64).tobytes()
+    if key in _SUNS:
+        return _SUNS[key]
+    out = _SUNS.setdefault(key, []) if len(_SUNS) < 8 else []
     for i, d in enumerate(directions):
         z = np.asarray(d, np.float64)
         x = np.cross([0.0, 0.0, 1.0] if abs(z[2]) < 0.9 else [0.0, 1.0, 0.0], z)
@@ -119,7 +122,10 @@ def shadow_maps(atlas, lights: list, bounds, fit, res: int) -> list:
     from .render.direct import ShadowMap
     from .scene.lights import light_views
 
-    views = [light_views(s, bounds, fit)[0] for s in lights]
+    key = tuple(np.asarray(b, np.float64).tobytes() for b in (*bounds, *fit))
+    held = [v for ls, k, v in _VIEWS if ls is lights and k == key]
+    views = held[0] if held else [light_views(s, bounds, fit)[0] for s in lights]
+    _VIEWS[:] = [(lights, key, views), *(e for e in _VIEWS if e[2] is not views)][:2]
     stack = atlas.render(views, res)
     maps = [ShadowMap(s, [v], [stack[i]], res, stack[i:i + 1])
             for i, (s, v) in enumerate(zip(lights, views))]
@@ -171,6 +177,8 @@ def _one_tap(shadow, pos: np.ndarray, nrm: np.ndarray) -> np.ndarray:
 
 
 _STACK: list = []  # [(maps list, their depths (K, R, R) float32)]: the last two stacked
+_SUNS: dict = {}  # direction set's bytes -> its suns
+_VIEWS: list = []  # [(suns, bounds and window bytes, their views)]: the last two (GI, pixels)
 
 
 def _stacked(maps: list) -> np.ndarray:

@@ -188,18 +188,20 @@ def propagate(engine, scene, src: Source, run, bounds, stats) -> list:
         refl *= engine.raster.surface.factor(
             tri, textures.barycentric(scene.positions[tri], pos), gi=True)
     pos2, nrm2 = np.concatenate([pos, pos]), np.concatenate([nrm, -nrm])
-    e = direct(engine, scene, bounds, pos2, nrm2, stats,
-               material=src.material if src.kind == "emission" else -1,
-               world=src.kind == "world", gi=True)
-    flux = e * np.concatenate([area, area])[:, None] * np.concatenate([refl, refl])
     # Light leaving the LPV box outward meets nothing (the box bounds the geometry, or the
     # closed space around the camera): the side a surfel lights must face into the box (a
-    # flat box's thin axis aside); a closed room's outer sides are left out.
+    # flat box's thin axis aside); a closed room's outer sides are left out, and not lit.
     lo, hi = (np.asarray(b, np.float64) for b in bounds)
     tol = 1e-6 * max(float(np.max(hi - lo)), 1e-30)
     ahead = pos2 + nrm2 * tol
     flat = (hi - lo) <= 2 * tol
     inside = np.all(flat | ((ahead >= lo) & (ahead <= hi)), axis=1)
+    e = np.zeros((len(pos2), 3))
+    if inside.any():
+        e[inside] = direct(engine, scene, bounds, pos2[inside], nrm2[inside], stats,
+                           material=src.material if src.kind == "emission" else -1,
+                           world=src.kind == "world", gi=True)
+    flux = e * np.concatenate([area, area])[:, None] * np.concatenate([refl, refl])
     keep = inside & (flux.max(axis=1) > 0)
     stats.add_ms("sources", time.perf_counter() - t0)
     stats.info.setdefault("source_flux", {})[src.name] = float(flux[keep].sum())
