@@ -453,11 +453,11 @@ class Rasterizer:
         b = bary4[covered]
         tri = (b[:, 2].astype(np.int64) - 1) * TRIANGLE_SPLIT + b[:, 3].astype(np.int64)
         albedo = self.albedo[tri]
-        ray = _PixelRays(view, projection, width, height, covered, footprint)
         if self.surface is not None:
             factor = self.surface.factor(tri, b[:, :2])
             if footprint > 0:
                 corners = self.corners
+                ray = _PixelRays(view, projection, width, height, covered, footprint)
 
                 def bary_at(rows, offsets):
                     return textures.plane_barycentric(corners[tri[rows]], *ray.at(rows, offsets),
@@ -471,9 +471,10 @@ class Rasterizer:
             rows, table = self.shares
             r = rows[tri]
             has = np.flatnonzero(r >= 0)
-            _, d = ray.at(has, np.zeros((1, 2)))
-            d = d[:, 0]
-            cos = (nrm[has] * d).sum(1) / np.maximum(np.linalg.norm(d, axis=1), 1e-30)
+            inv = np.linalg.inv(np.asarray(view, np.float64))  # deferred.toward_viewer's rule
+            d = (inv[:3, 2] if abs(float(np.asarray(projection)[3, 3])) > 0.5
+                 else inv[:3, 3] - pos[has])
+            cos = (nrm[has] * d).sum(-1) / np.maximum(np.linalg.norm(d, axis=-1), 1e-30)
             albedo[has] *= textures.share_at(table, r[has], cos)
         return covered, pos, nrm, albedo, alb[:, 3] > 0.5
 

@@ -319,24 +319,36 @@ def footprint_factor(surface: Surface, tri: np.ndarray, centre: np.ndarray, cove
     (len(rows), K, 2) on the pixel's triangle plane. Each read follows the texture's
     interpolation and extension (sample). Returns (factor (N, 3), pixels refined)."""
     out = np.array(centre, np.float32, copy=True)
-    img = np.zeros(covered.shape + (4,), np.float32)
-    img[covered, :3] = out
-    img[covered, 3] = surface.layout.albedo_texture[tri] + 2  # 0: uncovered, 1: untextured
+    img = np.zeros(covered.shape + (3,), np.float32)
+    img[covered] = out
+    ids = np.zeros(covered.shape, np.int32)
+    ids[covered] = surface.layout.albedo_texture[tri] + 2  # 0: uncovered, 1: untextured
     bend = np.zeros(covered.shape, bool)
-    for axis in (0, 1):  # a neighbour off the image or of another texture: the pixel's own
-        p = np.pad(img, [(1, 1) if a == axis else (0, 0) for a in range(3)])
-        lo, hi = (np.take(p, range(k, k + covered.shape[axis]), axis=axis) for k in (0, 2))
-        lo, hi = (np.where(n[..., 3:] == img[..., 3:], n, img) for n in (lo, hi))
-        bend |= np.abs(lo + hi - 2 * img)[..., :3].max(axis=2) > FOOTPRINT_TOL
-    rows = np.flatnonzero(bend[covered])
+    for im, idm, bd in ((img, ids, bend), (img.transpose(1, 0, 2), ids.T, bend.T)):
+        # along rows, then columns (views); a neighbour off the image or of another texture
+        # counts as the pixel's own value
+        mid = im[1:-1]
+        lo = np.where((idm[:-2] == idm[1:-1])[..., None], im[:-2], mid)
+        hi = np.where((idm[2:] == idm[1:-1])[..., None], im[2:], mid)
+        bd[1:-1] |= np.abs(lo + hi - 2 * mid).max(axis=2) > FOOTPRINT_TOL
+        for e, nb in ((0, 1), (-1, -2)):
+            same = (idm[e] == idm[nb])[:, None]
+            bd[e] |= np.abs(np.where(same, im[nb] - im[e], 0)).max(axis=1) > FOOTPRINT_TOL
+    # corner colours alone are linear over a triangle: their mean over a cell is the centre's
+    rows = np.flatnonzero(bend[covered] & (ids[covered] > 1))
     k = FOOTPRINT_SPLIT
-    g = (np.arange(k) + 0.5) / k - 0.5
-    subs = np.stack(np.meshgrid(g, g, indexing="ij"), -1).reshape(-1, 2)
-    step = max(1, _CHUNK // subs.shape[0])
+    g = (np.arange(k) + 0.5) / k
+    wx, wy = (w.ravel() for w in np.meshgrid(g, g, indexing="ij"))
+    # the sub-points' barycentrics bilinear between the rays through the cell's 4 corners:
+    # exact for an orthographic view, off by (cell / depth)^2 of the cell in perspective
+    weights = np.stack([(1 - wx) * (1 - wy), wx * (1 - wy), (1 - wx) * wy, wx * wy], axis=1)
+    corners = np.array([[-0.5, -0.5], [0.5, -0.5], [-0.5, 0.5], [0.5, 0.5]])
+    step = max(1, _CHUNK // (k * k))
     for c in range(0, rows.size, step):
         r = rows[c:c + step]
-        f = surface.factor(np.repeat(tri[r], subs.shape[0]), bary_at(r, subs).reshape(-1, 2))
-        out[r] = f.reshape(-1, subs.shape[0], 3).mean(axis=1)
+        b = np.einsum("sc,ncd->nsd", weights, bary_at(r, corners)).reshape(-1, 2)
+        f = surface.factor(np.repeat(tri[r], k * k), b)
+        out[r] = f.reshape(-1, k * k, 3).mean(axis=1)
     return out, int(rows.size)
 
 
