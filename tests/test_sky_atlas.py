@@ -52,15 +52,17 @@ def test_each_tile_holds_the_depth_of_the_plane_its_texels_see():
 
 
 def test_atlas_matches_one_pass_per_direction():
-    """The GI's 64 directions over a room of boxes: the atlas and render_shadow_map agree on
-    all but a few silhouette texels (the two passes transform the corners differently)."""
+    """The pixels' 128 directions at 256^2 (two columns of tiles where the driver's largest
+    viewport is 16384) over a room of boxes: the atlas and render_shadow_map agree but
+    on silhouette texels (0.04 %: the atlas draws each map upside down, so that GL's rows come
+    back top-first, and the fill rule breaks a texel centre on an edge the other way)."""
     tris = np.concatenate([box_triangles(np.array([-1.0, -1, 0]), np.array([1.0, 1, 2]),
                                          inward=True),
                            box_triangles(np.array([-0.4, -0.3, 0]), np.array([0.2, 0.4, 1.2]))])
-    raster, res = _raster(tris), 64
+    raster, res = _raster(tris), sky.SHADOW_RESOLUTION
     box = (np.array([-1.0, -1, 0]), np.array([1.0, 1, 2]))
     fit = (np.array([-0.9, -0.9, 0.1]), np.array([0.9, 0.9, 1.9]))
-    suns = sky.suns(quadrature_directions(sky.DIRECTIONS))
+    suns = sky.suns(quadrature_directions(sky.RENDER_DIRECTIONS))
     maps = sky.shadow_maps(atlas.DepthAtlas(raster), suns, box, fit, res)
     want = np.stack([direct.render_shadow_map(raster, s, box, res, fit).stacked()[0]
                      for s in suns])
@@ -69,8 +71,12 @@ def test_atlas_matches_one_pass_per_direction():
     assert [m.views[0].half_extent for m in maps] == [
         lights.light_views(s, box, fit)[0].half_extent for s in suns]
     g, w = (np.nan_to_num(a, posinf=-1.0) for a in (got, want))  # the scene lies at depth > 0
-    same = np.abs(g - w) < 1e-4
-    assert np.isfinite(want).mean() > 0.5 and (~same).sum() <= 1e-4 * same.size
+    differ = np.abs(g - w) >= 1e-4
+    near = np.lib.stride_tricks.sliding_window_view(
+        np.pad(w, ((0, 0), (1, 1), (1, 1)), mode="edge"), (3, 3), axis=(1, 2))
+    silhouette = np.ptp(near, axis=(-2, -1)) > 1e-3  # a depth step within a texel
+    assert np.isfinite(want).mean() > 0.5 and differ.sum() <= 1e-3 * differ.size
+    assert not (differ & ~silhouette).any()
 
 
 def test_gi_sky_light_of_one_tap_beside_a_long_wall_is_the_visible_skys_view_factor():

@@ -22,6 +22,7 @@ out float v_depth;
 out float gl_ClipDistance[4];
 void main() {
     vec4 c = mat4(c0, c1, c2, c3) * vec4(in_pos, 1.0);  // orthographic: w = 1
+    c.y = -c.y;  // the map's top row first in GL's bottom-up rows: read back as they lie
     gl_ClipDistance[0] = c.w - c.x;
     gl_ClipDistance[1] = c.w + c.x;
     gl_ClipDistance[2] = c.w - c.y;
@@ -59,8 +60,9 @@ class DepthAtlas:
         import moderngl
 
         raster, ctx, k = self.raster, self.raster.ctx, len(views)
-        nx = int(np.ceil(np.sqrt(k)))
-        ny = -(-k // nx)
+        # columns of tiles as tall as the driver allows, each read into its place in the stack
+        ny = max(1, min(k, ctx.info["GL_MAX_VIEWPORT_DIMS"][1] // resolution))
+        nx = -(-k // ny)
         size = (nx * resolution, ny * resolution)
         if self._fbo is None or self._fbo[0] != size:
             if self._fbo is not None:
@@ -80,7 +82,7 @@ class DepthAtlas:
                 view = np.asarray(v.view, np.float64) @ shift
                 inst[i, :16] = (np.asarray(v.projection, np.float64) @ view).T.reshape(16)
                 inst[i, 16:20] = view[2]
-                inst[i, 20:] = (i % nx, i // nx)
+                inst[i, 20:] = (i // ny, i % ny)
             buf = ctx.buffer(inst.tobytes())
             vao = ctx.vertex_array(self.program, [(vbo, "3f 40x", "in_pos"),
                                                   (buf, "4f 4f 4f 4f 4f 2f/i", "c0", "c1",
@@ -95,9 +97,11 @@ class DepthAtlas:
                 ctx.disable_direct(_CLIP_DISTANCE0 + i)
             vao.release()
             buf.release()
-        data = np.frombuffer(fbo.color_attachments[0].read(), np.float32)
-        tiles = data.reshape(ny, resolution, nx, resolution)[:, ::-1].transpose(0, 2, 1, 3)
-        return np.ascontiguousarray(tiles.reshape(nx * ny, resolution, resolution)[:k])
+        out = np.empty((nx * ny, resolution, resolution), np.float32)
+        for col in range(nx):
+            fbo.read_into(out, (col * resolution, 0, resolution, size[1]), 1, dtype="f4",
+                          write_offset=col * ny * resolution * resolution * 4)
+        return out[:k]
 
     def release(self) -> None:
         if self._fbo is not None:
