@@ -359,7 +359,11 @@ def test_image_texture_matches_cycles_per_texel(reference, case):
 VIEW_COS = (1.0, 0.65, 0.36, 0.12)  # off the measured grid but 1: the interpolation too
 VIEW_CASES = {"principled": {}, "roughness 0.2 ior 2": {"Roughness": 0.2, "IOR": 2.0},
               "specular tint": {"Specular Tint": (1.0, 0.4, 0.2, 1.0), "IOR": 1.8},
-              "coat 1": {"Coat Weight": 1.0}}
+              "coat 1": {"Coat Weight": 1.0},
+              "coat rough ior 2": {"Coat Weight": 0.7, "Coat Roughness": 0.4, "Coat IOR": 2.0},
+              "coat tint": {"Coat Weight": 1.0, "Coat Tint": (0.5, 1.0, 0.25, 1.0)},
+              "sheen 1": {"Sheen Weight": 1.0},
+              "sheen rough": {"Sheen Weight": 1.0, "Sheen Roughness": 1.0}}
 VP = 8  # pixels per patch side
 
 
@@ -387,7 +391,9 @@ def view_reference(tmp_path_factory):
             me.materials.append(mat)
             scene.collection.objects.link(bpy.data.objects.new(me.name, me))
     cam = bpy.data.cameras.new("cam")
-    cam.type, cam.ortho_scale, cam.clip_end = "ORTHO", len(VIEW_COS), 100.0
+    # (the orthographic scale spans the image's longer side)
+    cam.type, cam.ortho_scale = "ORTHO", max(len(VIEW_COS), len(VIEW_CASES))
+    cam.clip_end = 100.0
     ob = bpy.data.objects.new("cam", cam)
     ob.location = (len(VIEW_COS) / 2, -len(VIEW_CASES) / 2, 50)
     scene.collection.objects.link(ob)
@@ -404,8 +410,9 @@ def view_reference(tmp_path_factory):
 @pytest.mark.parametrize("case", list(VIEW_CASES))
 def test_diffuse_color_follows_the_view_angle_like_cycles(view_reference, case):
     """Each patch's Diffuse Color (its inner pixels) is Cycles' at its view angle: the
-    Principled's specular (and coat) layer takes more towards grazing; the change from
-    head-on is well beyond the tolerance, so one value per material fails."""
+    Principled's specular and coat layers take more towards grazing, its sheen more, the coat
+    tint absorbs more; the change from head-on is well beyond the tolerance, so one value per
+    material fails."""
     theirs, ours, s = view_reference
     row = list(VIEW_CASES).index(case)
     inner = slice(2, VP - 2)

@@ -31,7 +31,10 @@ VIEW_TABLE = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file
 def measure_view(out: str = VIEW_TABLE, samples: int = 16) -> dict:
     """Diffuse Color of a white-based Principled (roughness x IOR, Specular IOR Level 0.5) on
     unit patches tilted so that the orthographic camera sees each at a cosine of COS_VIEW
-    (each patch 1/cos long, so that all project to 1 x 1); written to ``out`` as JSON."""
+    (each patch 1/cos long, so that all project to 1 x 1); below them the same for the coat
+    (white base, no specular, Coat Weight 1, white tint; coat roughness x coat IOR) and the
+    sheen layer's albedo (black base, no specular, Sheen Weight 1, white tint) per sheen
+    roughness x COS_VIEW; written to ``out`` as JSON."""
     os.environ.setdefault("BLENDER_USER_RESOURCES", tempfile.mkdtemp(prefix="lpv_layers_"))
     import bpy
 
@@ -41,14 +44,27 @@ def measure_view(out: str = VIEW_TABLE, samples: int = 16) -> dict:
     bpy.ops.wm.read_homefile(use_empty=True)
     scene = bpy.context.scene
     cols = len(IOR) * len(COS_VIEW)
-    for row, r in enumerate(ROUGHNESS):
-        for c in range(cols):
+    n = len(ROUGHNESS)
+    rows = 3 * n
+    for row, r in enumerate(ROUGHNESS * 3):
+        coat, sheen = n <= row < 2 * n, row >= 2 * n
+        for c in range(len(COS_VIEW) if sheen else cols):
             ior, mu = IOR[c // len(COS_VIEW)], COS_VIEW[c % len(COS_VIEW)]
-            mat = bpy.data.materials.new(f"view {r} {ior} {mu}")
+            mat = bpy.data.materials.new(f"view {row} {ior} {mu}")
             p = mat.node_tree.nodes["Principled BSDF"]
-            p.inputs["Base Color"].default_value = (1, 1, 1, 1)
+            p.inputs["Base Color"].default_value = (0, 0, 0, 1) if sheen else (1, 1, 1, 1)
             p.inputs["Roughness"].default_value = r
             p.inputs["IOR"].default_value = ior
+            if coat:
+                p.inputs["Specular IOR Level"].default_value = 0.0
+                p.inputs["Coat Weight"].default_value = 1.0
+                p.inputs["Coat Roughness"].default_value = r
+                p.inputs["Coat IOR"].default_value = ior
+            if sheen:
+                p.inputs["Specular IOR Level"].default_value = 0.0
+                p.inputs["Sheen Weight"].default_value = 1.0
+                p.inputs["Sheen Roughness"].default_value = r
+                p.inputs["Sheen Tint"].default_value = (1, 1, 1, 1)
             # the patch rises along +y towards z: its normal (0, -sin, cos) . view (0, 0, 1) = mu
             rise = float(np.sqrt(1.0 - mu * mu)) / mu
             y0 = -row - 1.0
@@ -60,17 +76,19 @@ def measure_view(out: str = VIEW_TABLE, samples: int = 16) -> dict:
     cam = bpy.data.cameras.new("cam")
     cam.type, cam.ortho_scale, cam.clip_end = "ORTHO", cols, 300.0
     ob = bpy.data.objects.new("cam", cam)
-    ob.location = (cols / 2, -len(ROUGHNESS) / 2, 100)
+    ob.location = (cols / 2, -rows / 2, 100)
     scene.collection.objects.link(ob)
     scene.camera = ob
     path = os.path.join(tempfile.mkdtemp(), "view.exr")
-    cycles.render_cycles_passes(path, samples=samples, resolution=(cols * P, len(ROUGHNESS) * P))
+    cycles.render_cycles_passes(path, samples=samples, resolution=(cols * P, rows * P))
     color = exr.read_multilayer(path)["Diffuse Color"][:, :, 0]
     t = np.array([[color[row * P + 1:row * P + 3, c * P + 1:c * P + 3].mean()
-                   for c in range(cols)] for row in range(len(ROUGHNESS))])
+                   for c in range(cols)] for row in range(rows)])
     table = {"blender": bpy.app.version_string, "roughness": ROUGHNESS, "ior": IOR,
              "cos_view": COS_VIEW, "samples": samples,
-             "transmitted": t.reshape(len(ROUGHNESS), len(IOR), len(COS_VIEW)).round(5).tolist()}
+             "transmitted": t[:n].reshape(n, len(IOR), len(COS_VIEW)).round(5).tolist(),
+             "coat_transmitted": t[n:2 * n].reshape(n, len(IOR), len(COS_VIEW)).round(5).tolist(),
+             "sheen_albedo": t[2 * n:, :len(COS_VIEW)].round(5).tolist()}
     with open(out, "w") as f:
         json.dump(table, f, indent=None, separators=(",", ":"))
         f.write("\n")

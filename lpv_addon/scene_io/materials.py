@@ -218,22 +218,19 @@ class _Evaluator:
         weight = k * np.clip(1.0 - spec, 0.0, 1.0)
         over = 1.0  # the coat above both the base and the sheen
         coat = np.clip(val("Coat Weight"), 0.0, 1.0)
-        # the specular (and coat) layer over the view angle, relative to head-on
-        view = layer_transmitted_view(rough, f0)[:, None]
         if coat > 0:
             coat_ior = max(val("Coat IOR", 1.5), 1e-6)
             cf0 = ((coat_ior - 1.0) / (coat_ior + 1.0)) ** 2
             coat_tint = self.color(inp["Coat Tint"], stack).mean()
-            coat_albedo = 1.0 - layer_transmitted(val("Coat Roughness", 0.03), cf0)
+            # the coat's own measured table: it reflects more than the specular layer of the
+            # same roughness and IOR once rough (0.889 against 0.891 at 0.375, IOR 2)
+            coat_albedo = 1.0 - float(_view_table("coat_transmitted", val("Coat Roughness", 0.03),
+                                                  cf0)[-1, 0])
             over = (1.0 - coat * coat_albedo) * (1.0 - coat + coat * coat_tint)
-            coat_view = 1.0 - coat * (1.0 - layer_transmitted_view(val("Coat Roughness", 0.03),
-                                                                   cf0))
-            view = view * coat_view[:, None]
-        view = np.clip(view, 0.0, 1.0)
-        self.share = np.where(view[-1] > 0, view / np.where(view[-1] > 0, view[-1], 1.0), 1.0)
         sheen = np.clip(val("Sheen Weight"), 0.0, 1.0) * np.interp(
             np.clip(val("Sheen Roughness", 0.5), 0.0, 1.0), _ROUGHNESS, _SHEEN_ALBEDO)
         base = self.color(inp["Base Color"], stack)
+        self.share = self.view_share(inp, stack, base.mean() * k, alpha, f0)
         base.const = base.const * weight * (1.0 - sheen) * over
         if sheen > 0:
             sheen_tint = self.color(inp["Sheen Tint"], stack).mean()
@@ -244,6 +241,34 @@ class _Evaluator:
             if strength != 0:
                 emission = self.mean(inp["Emission Color"], stack, "emission") * strength
         return base, emission
+
+    def view_share(self, inp, stack, base: np.ndarray, alpha: float, f0: float) -> np.ndarray:
+        """(K, 3) Principled's Diffuse Color at core SHARE_COS over its head-on value, as
+        principled() layers it with each layer's albedo at the view angle (measured tables,
+        _view_table) and the coat tint's absorption along the refracted path
+        (Cycles: tint^(1 / cos refracted)); ``base``: mean base colour x (1 - metallic) x
+        (1 - transmission) x alpha (exact without a texture; a texture's sheen share uses its
+        mean); ``f0``: the specular layer's normal reflectance."""
+        def val(name, default=0.0):
+            return self.value(inp[name], stack) if name in inp else default
+
+        mu = np.asarray(core.scene.model.SHARE_COS, np.float64)[:, None]
+        spec = np.clip(_view_table("transmitted", val("Roughness", 0.5), f0), 0.0, 1.0)
+        sheen = np.clip(val("Sheen Weight"), 0.0, 1.0) * _view_table(
+            "sheen_albedo", np.clip(val("Sheen Roughness", 0.5), 0.0, 1.0))
+        tint = self.color(inp["Sheen Tint"], stack).mean() if "Sheen Tint" in inp else 1.0
+        total = base * spec * (1.0 - sheen) + sheen * tint * alpha
+        coat = np.clip(val("Coat Weight"), 0.0, 1.0)
+        if coat > 0:
+            ior = max(val("Coat IOR", 1.5), 1e-6)
+            layer = _view_table("coat_transmitted", val("Coat Roughness", 0.03),
+                                ((ior - 1.0) / (ior + 1.0)) ** 2)
+            cos_t = np.sqrt(np.clip(1.0 - (1.0 - mu * mu) / (ior * ior), 1e-6, 1.0))
+            absorbed = np.clip(self.color(inp["Coat Tint"], stack).mean(), 1e-6, None) ** (
+                1.0 / cos_t)
+            total = total * (1.0 - coat * (1.0 - layer)) * (1.0 - coat + coat * absorbed)
+        head = total[-1]
+        return np.where(head > 0, total / np.where(head > 0, head, 1.0), 1.0)
 
     # ---------------------------------------------------------------------- colour algebra
 
@@ -536,24 +561,30 @@ def glossy_reflectance(ev: _Evaluator, socket, stack=(), depth: int = 0) -> np.n
 _VIEW: dict = {}  # principled_view.json, read on first use
 
 
-def layer_transmitted_view(roughness: float, f0: float) -> np.ndarray:
-    """layer_transmitted at each cosine of the view angle of core SHARE_COS (K,): bilinear in
-    roughness and F0 (clamped to the table) of Cycles' Diffuse Color measured over the view
-    angle (python -m tools.measure_principled_layers --view -> principled_view.json)."""
+def _view_table(name: str, roughness: float, f0: float | None = None) -> np.ndarray:
+    """(K, 1) a measured table of principled_view.json at core SHARE_COS: "transmitted" or
+    "coat_transmitted" (the specular or coat layer's 1 - E, bilinear in roughness^2 (GGX's alpha, where the tables are
+    smooth) and F0, clamped to the table) or "sheen_albedo" (linear in sheen roughness)
+    (python -m tools.measure_principled_layers --view)."""
     if not _VIEW:
         import json
 
         with open(os.path.join(os.path.dirname(__file__), "principled_view.json")) as f:
             _VIEW.update(json.load(f))
-    t = np.asarray(_VIEW["transmitted"], np.float64)  # (roughness, ior, cos_view)
-    ior = np.asarray(_VIEW["ior"], np.float64)
-    f0s = ((ior - 1.0) / (ior + 1.0)) ** 2
-    r, f = (float(np.clip(v, 0.0, 1.0)) for v in (roughness, f0))
-    cols = [np.interp(f, f0s, t[i, :, k]) for i in range(t.shape[0]) for k in range(t.shape[2])]
-    at = np.array([np.interp(r * r, np.square(_VIEW["roughness"]), c)
-                   for c in np.reshape(cols, (t.shape[0], -1)).T])
+    t = np.asarray(_VIEW[name], np.float64)
+    r = float(np.clip(roughness, 0.0, 1.0))
+    if f0 is None:  # (roughness, cos)
+        at = np.array([np.interp(r, _VIEW["roughness"], t[:, k]) for k in range(t.shape[1])])
+    else:  # (roughness, ior, cos)
+        ior = np.asarray(_VIEW["ior"], np.float64)
+        f = float(np.clip(f0, 0.0, 1.0))
+        cols = np.array([[np.interp(f, ((ior - 1.0) / (ior + 1.0)) ** 2, t[i, :, k])
+                          for k in range(t.shape[2])] for i in range(t.shape[0])])
+        at = np.array([np.interp(r * r, np.square(_VIEW["roughness"]), cols[:, k])
+                       for k in range(t.shape[2])])
     order = np.argsort(_VIEW["cos_view"])
-    return np.interp(core.scene.model.SHARE_COS, np.asarray(_VIEW["cos_view"])[order], at[order])
+    return np.interp(core.scene.model.SHARE_COS, np.asarray(_VIEW["cos_view"])[order],
+                     at[order])[:, None]
 
 
 def _by_identifier(sockets, identifier: str):
