@@ -23,6 +23,9 @@ from .scene.world import World
 DIRECTIONS = 64
 RENDER_DIRECTIONS = 128
 SHADOW_RESOLUTION = 256  # texels per side of each direction's map (64 maps: 16 MiB, 128: 32 MiB)
+# The GI's surfels: a surface in front of a surfel's plane by more than this share of a texel
+# hides the sky (depths and planes are exact to float32; a thinner layer is below the map)
+FIRST_HIT_TEXELS = 0.05
 MAX_MAP_SIDE = 512  # the map is box-averaged down to at most this many columns first
 MIN_MAP_SIDE = 64  # and sampled at least this finely (a 1x1 uniform World included)
 
@@ -145,7 +148,8 @@ def irradiance(directions: np.ndarray, weights: np.ndarray, radiance: np.ndarray
         views = np.array([m.views[0].view for m in maps], np.float64)
         half = np.array([m.views[0].half_extent for m in maps], np.float64)
         return _compiled.irradiance(directions, weights, radiance, views, half,
-                                    _stacked(maps), positions, normals, pcf)
+                                    _stacked(maps), positions, normals, pcf,
+                                    FIRST_HIT_TEXELS)
     pos = np.asarray(positions, np.float64)
     nrm = np.asarray(normals, np.float64)
     cos = np.maximum(nrm @ np.asarray(directions, np.float64).T, 0.0)  # (M, K)
@@ -162,18 +166,34 @@ def irradiance(directions: np.ndarray, weights: np.ndarray, radiance: np.ndarray
 
 
 def _one_tap(shadow, pos: np.ndarray, nrm: np.ndarray) -> np.ndarray:
-    """Visibility (M,) of receivers in a sun's map from the texel each falls in, offset along
-    its normal and biased by 1.5 texels as the direct light's test (1 outside the window)."""
+    """Visibility (M,) of surfels in a sun's map, 1 or 0 from one texel each: the direct light's
+    test of the point offset along its normal and biased by 1.5 texels (1 outside the window),
+    and a first-hit test without either: 0 where the texel the surfel falls in holds a surface
+    in front of the surfel's plane (extended to the texel's centre) by over FIRST_HIT_TEXELS
+    of a texel. Surfels also sample hidden faces (a floor under a rug, a face buried in a
+    solid), which the offset and bias alone light (docs/decisions.md)."""
     v, half, res = shadow.views[0].view, shadow.views[0].half_extent, shadow.resolution
     world = 2.0 * half / res
+    depths = shadow.stacked()[0]
     o = [pos[:, i] + nrm[:, i] * world * 1.5 for i in range(3)]
     u, w, d = ((o[0] * v[r, 0] + o[1] * v[r, 1] + o[2] * v[r, 2] + v[r, 3]) for r in range(3))
     u, w = u / half, w / half
     inside = (np.abs(u) <= 1.0) & (np.abs(w) <= 1.0)
     x = np.minimum(((np.where(inside, u, 0.0) + 1.0) * 0.5 * res).astype(np.int64), res - 1)
     y = np.minimum(((1.0 - np.where(inside, w, 0.0)) * 0.5 * res).astype(np.int64), res - 1)
-    depth = shadow.stacked()[0][y, x].astype(np.float64)
-    return np.where(inside & (-d > depth + world * 1.5), 0.0, 1.0)
+    lit = ~(inside & (-d > depths[y, x].astype(np.float64) + world * 1.5))
+    q = [pos[:, 0] * v[r, 0] + pos[:, 1] * v[r, 1] + pos[:, 2] * v[r, 2] + v[r, 3]
+         for r in range(3)]
+    m = [nrm[:, 0] * v[r, 0] + nrm[:, 1] * v[r, 1] + nrm[:, 2] * v[r, 2] for r in range(3)]
+    u, w = q[0] / half, q[1] / half
+    lim = 1.0 + 2.0 / res  # a surfel on the LPV box's edge: in its window up to rounding
+    inside = (np.abs(u) <= lim) & (np.abs(w) <= lim)
+    x = np.clip(((np.where(inside, u, 0.0) + 1.0) * 0.5 * res).astype(np.int64), 0, res - 1)
+    y = np.clip(((1.0 - np.where(inside, w, 0.0)) * 0.5 * res).astype(np.int64), 0, res - 1)
+    cx, cy = ((x + 0.5) * 2.0 / res - 1.0) * half, (1.0 - (y + 0.5) * 2.0 / res) * half
+    plane = (m[0] * (cx - q[0]) + m[1] * (cy - q[1])) / np.maximum(m[2], 1e-12) - q[2]
+    lit &= ~(inside & (depths[y, x].astype(np.float64) < plane - FIRST_HIT_TEXELS * world))
+    return lit.astype(np.float64)
 
 
 _STACK: list = []  # [(maps list, their depths (K, R, R) float32)]: the last two stacked

@@ -427,3 +427,38 @@ def test_an_emitter_whose_back_is_capped_emits_from_its_front_only():
     e_floor = direct_at(eng, scene, [[0.0, 0.0, 0.0]])[0, 0]
     assert all(c.side == 1 for c, _ in eng.source_maps.clusters[1])  # along its normal: down
     assert e_ceiling.max() == 0 and e_floor > 0.1 * E
+
+
+def test_gi_sky_light_skips_faces_under_a_thin_layer_or_inside_a_solid():
+    """The GI's one-tap sky test on a ground with a 2 cm rug and a 1 m cube standing on it
+    (faces coincident with the ground): the rug's top and the open ground get pi L, the ground
+    under the rug and both sides of the cube's faces inside it none (the 1.5-texel offset and
+    bias of the camera's receivers lit the ground under the rug at 0.97-1.0 pi L), in the numpy
+    reference and the compiled twin."""
+    from lpv_core.runtime import jit
+
+    tris = np.concatenate([
+        quad([-10, -10, 0], [10, -10, 0], [10, 10, 0], [-10, 10, 0]),
+        box_triangles(np.array([-1.0, -1, 0]), np.array([1.0, 1, 0.02])),
+        box_triangles(np.array([2.0, -0.5, 0]), np.array([3.0, 0.5, 1.0]))])
+    scene = make_scene(tris, materials=[Material("grey")], lights=[], world=uniform(),
+                       camera=camera([0, -8, 4], [0, 0, 0]))
+    eng = engine.Engine()
+    eng.update(scene)
+    sm = sources.maps(eng, scene, eng.lpv_bounds(scene), engine.Stats())
+    xy = np.random.default_rng(5).uniform(-0.8, 0.8, (40, 2))
+    up, down = np.tile([0, 0, 1.0], (40, 1)), np.tile([0, 0, -1.0], (40, 1))
+    cube = np.c_[xy[:, 0] * 0.5 + 2.5, xy[:, 1] * 0.5]
+    pts = np.r_[np.c_[xy, np.zeros(40)], np.c_[xy, np.full(40, 0.02)],
+                np.c_[xy[:, 0] - 6, xy[:, 1], np.zeros(40)], np.c_[cube, np.zeros(40)],
+                np.c_[cube, np.ones(40)]]
+    nrm = np.r_[up, up, up, up, down]
+    for compiled in (True, False) if jit.enabled() else (False,):
+        jit.switch(compiled)
+        try:
+            e = sky.irradiance(*sm.world[sky.DIRECTIONS][1:], pts, nrm, pcf=False)[:, 0]
+        finally:
+            jit.switch(True)
+        e = e.reshape(5, 40) / (np.pi * L)
+        assert e[0].max() < 0.02 and e[3].max() < 0.02 and e[4].max() < 0.02
+        assert e[1].min() > 0.95 and np.allclose(e[2], 1.0, atol=0.02)  # the cube: <= 3 %

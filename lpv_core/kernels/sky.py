@@ -12,9 +12,10 @@ from .direct import _pcf
 
 
 def irradiance(directions, weights, radiance, views, half, depths, positions, normals,
-               pcf: bool = True) -> np.ndarray:
+               pcf: bool = True, first_hit: float = 0.0) -> np.ndarray:
     """sky.irradiance (M, 3) with the directions' view matrices (K, 4, 4), window half extents
-    (K,) and stacked depth maps (K, R, R) float32, on two threads; ``pcf`` False: one tap."""
+    (K,) and stacked depth maps (K, R, R) float32, on two threads; ``pcf`` False: one tap, its
+    tolerance ``first_hit`` texels (sky.FIRST_HIT_TEXELS)."""
     pos = np.ascontiguousarray(positions, np.float64)
     nrm = np.ascontiguousarray(normals, np.float64)
     out = np.empty((pos.shape[0], 3), np.float64)
@@ -22,14 +23,14 @@ def irradiance(directions, weights, radiance, views, half, depths, positions, no
             np.ascontiguousarray(weights, np.float64),
             np.ascontiguousarray(radiance, np.float64),
             np.ascontiguousarray(views, np.float64), np.ascontiguousarray(half, np.float64),
-            depths, bool(pcf), out)
+            depths, bool(pcf), float(first_hit), out)
     pool.in_halves(lambda sl: _sky_kernel(*args, sl.start, sl.stop), pos.shape[0])
     return out
 
 
 @jit.kernel
-def _sky_kernel(pos, nrm, dirs, weights, rad, views, half, depths, pcf, out, m0,
-                m1):  # pragma: no cover
+def _sky_kernel(pos, nrm, dirs, weights, rad, views, half, depths, pcf, first_hit, out,
+                m0, m1):  # pragma: no cover
     """Points m0..m1-1: den = sum_k w_k c_k, e = sum_k w_k c_k V_k L_k, out = pi e / den
     (c_k = max(0, n.w_k)); direction by direction, so that one map at a time is read (twice
     as fast as point by point through all 64 maps, docs/decisions.md)."""
@@ -39,6 +40,7 @@ def _sky_kernel(pos, nrm, dirs, weights, rad, views, half, depths, pcf, out, m0,
     for k in range(k_count):
         dark = rad[k, 0] == 0.0 and rad[k, 1] == 0.0 and rad[k, 2] == 0.0
         world = 2.0 * half[k] / res  # a texel; render/direct.py's offset and bias: 1.5 of them
+        eps = first_hit * world
         v = views[k]
         for m in range(m0, m1):
             nx, ny, nz = nrm[m, 0], nrm[m, 1], nrm[m, 2]
@@ -53,7 +55,7 @@ def _sky_kernel(pos, nrm, dirs, weights, rad, views, half, depths, pcf, out, m0,
             d = -(v[2, 0] * ox + v[2, 1] * oy + v[2, 2] * oz + v[2, 3])
             if pcf:
                 vis = _pcf(v, True, half[k], depths[k], res, ox, oy, oz, d, world * 1.5)
-            else:  # sky._one_tap
+            else:  # sky._one_tap: the offset, biased test and the first-hit test
                 u = (ox * v[0, 0] + oy * v[0, 1] + oz * v[0, 2] + v[0, 3]) / half[k]
                 w = (ox * v[1, 0] + oy * v[1, 1] + oz * v[1, 2] + v[1, 3]) / half[k]
                 vis = 1.0
@@ -61,6 +63,9 @@ def _sky_kernel(pos, nrm, dirs, weights, rad, views, half, depths, pcf, out, m0,
                     x = min(int((u + 1.0) * 0.5 * res), res - 1)
                     y = min(int((1.0 - w) * 0.5 * res), res - 1)
                     vis = 0.0 if d > depths[k, y, x] + world * 1.5 else 1.0
+                if vis > 0.0:
+                    vis = _first_hit(v, half[k], depths[k], res, pos[m, 0], pos[m, 1],
+                                     pos[m, 2], nx, ny, nz, eps)
             s = weights[k] * c * vis
             out[m, 0] += s * rad[k, 0]
             out[m, 1] += s * rad[k, 1]
@@ -68,3 +73,25 @@ def _sky_kernel(pos, nrm, dirs, weights, rad, views, half, depths, pcf, out, m0,
     for m in range(m0, m1):
         f = np.pi / den[m - m0] if den[m - m0] > 0.0 else 0.0
         out[m, 0], out[m, 1], out[m, 2] = out[m, 0] * f, out[m, 1] * f, out[m, 2] * f
+
+
+@jit.kernel
+def _first_hit(v, half, depth, res, px, py, pz, nx, ny, nz, eps):  # pragma: no cover
+    """sky._one_tap's first-hit test of one surfel: 0 where the texel it falls in holds a
+    surface in front of its plane (at the texel's centre) by over ``eps``, else 1."""
+    qx = px * v[0, 0] + py * v[0, 1] + pz * v[0, 2] + v[0, 3]
+    qy = px * v[1, 0] + py * v[1, 1] + pz * v[1, 2] + v[1, 3]
+    qz = px * v[2, 0] + py * v[2, 1] + pz * v[2, 2] + v[2, 3]
+    u, w = qx / half, qy / half
+    lim = 1.0 + 2.0 / res
+    if not (abs(u) <= lim and abs(w) <= lim):
+        return 1.0
+    x = min(max(int((u + 1.0) * 0.5 * res), 0), res - 1)
+    y = min(max(int((1.0 - w) * 0.5 * res), 0), res - 1)
+    mx = nx * v[0, 0] + ny * v[0, 1] + nz * v[0, 2]
+    my = nx * v[1, 0] + ny * v[1, 1] + nz * v[1, 2]
+    mz = nx * v[2, 0] + ny * v[2, 1] + nz * v[2, 2]
+    cx = ((x + 0.5) * 2.0 / res - 1.0) * half
+    cy = (1.0 - (y + 0.5) * 2.0 / res) * half
+    plane = (mx * (cx - qx) + my * (cy - qy)) / max(mz, 1e-12) - qz
+    return 0.0 if depth[y, x] < plane - eps else 1.0
