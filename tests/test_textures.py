@@ -649,3 +649,52 @@ def test_footprint_follows_the_textures_interpolation(interpolation):
     centre = tx.sample(tex, np.stack([cu.ravel(), cv.ravel()], 1))[:, 0].reshape(res, res)
     err, off = np.abs(color - expected).max(), np.abs(centre - expected).max()
     assert err < 0.01 and err < off / 3, (err, off)
+
+
+# ------------------------------------------------------------------ the view share
+
+
+def test_view_share_per_pixel_carried_and_validated(tmp_path):
+    """A material's diffuse_share scales its Diffuse Color per pixel at the cosine between the
+    normal and the direction to the camera (hand-derived here for a floor seen from a known
+    eye, the share linear in the cosine), untextured scenes included; a scene without one
+    stays bit-identical; the worker carries it; make_scene drops a non-finite one."""
+    from lpv_core import worker
+    from lpv_core.scene.model import SHARE_COS
+
+    plain = checker_room(None)
+    base = deferred.render(e := engine.Engine(), plain, e.update(plain))["Diffuse Color"]
+    share = np.repeat(np.asarray(SHARE_COS, np.float32)[:, None], 3, axis=1)  # share = cos
+    shared = dataclasses.replace(plain, materials=[
+        dataclasses.replace(plain.materials[0], diffuse_share=share), plain.materials[1]])
+    eng = engine.Engine()
+    color = deferred.render(eng, shared, eng.update(shared))["Diffuse Color"]
+    mask, pos, _, _, _ = eng.raster.gbuffer(shared.camera.view, shared.camera.projection, 48, 40)
+    floor = np.zeros(mask.shape, bool)
+    floor[mask] = pos[:, 2] < 1e-4
+    inner = floor & np.roll(floor, 1, 0) & np.roll(floor, -1, 0) & np.roll(floor, 1, 1) \
+        & np.roll(floor, -1, 1)
+    p = np.full(mask.shape + (3,), np.nan)
+    p[mask] = pos
+    to_eye = np.array([0.0, -3.0, 2.2]) - p[inner]
+    cos = to_eye[:, 2] / np.linalg.norm(to_eye, axis=1)  # the floor's normal is +z
+    # a pixel averages 4 samples over its footprint: cos varies by < 1e-3 across a pixel
+    np.testing.assert_allclose(color[inner], base[inner] * cos[:, None], rtol=2e-3)
+    wall = mask & ~floor
+    # no table: the triangle's albedo (exact, where the colour target interpolates it)
+    np.testing.assert_allclose(color[wall], base[wall], atol=2e-7)
+    again = deferred.render(e2 := engine.Engine(), plain, e2.update(plain))["Diffuse Color"]
+    np.testing.assert_array_equal(again, base)  # no table anywhere: the untextured path
+    assert e2.raster.shares is None and e2.raster.corners is None
+    path = str(tmp_path / "scene.npz")
+    worker.save_scene(path, shared)
+    back = worker.load_scene(path).materials[0].diffuse_share
+    assert back.dtype == np.float32
+    np.testing.assert_array_equal(back, share)
+    bad = share.copy()
+    bad[3, 1] = np.nan
+    repaired = make_scene(plain.positions, material_index=plain.material_index, materials=[
+        Material("bad", diffuse_share=bad), Material("neg", diffuse_share=-share)])
+    assert repaired.materials[0].diffuse_share is None
+    assert repaired.materials[1].diffuse_share.min() == 0
+    assert repaired.dropped["materials_with_invalid_values_defaulted"] == 2
