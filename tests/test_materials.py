@@ -363,14 +363,15 @@ VIEW_CASES = {"principled": {}, "roughness 0.2 ior 2": {"Roughness": 0.2, "IOR":
               "coat rough ior 2": {"Coat Weight": 0.7, "Coat Roughness": 0.4, "Coat IOR": 2.0},
               "coat tint": {"Coat Weight": 1.0, "Coat Tint": (0.5, 1.0, 0.25, 1.0)},
               "sheen 1": {"Sheen Weight": 1.0},
-              "sheen rough": {"Sheen Weight": 1.0, "Sheen Roughness": 1.0}}
+              "sheen rough": {"Sheen Weight": 1.0, "Sheen Roughness": 1.0},
+              "mix 0.3": mix_shader(0.3)}  # a Mix Shader of a Diffuse and a Principled
 VP = 8  # pixels per patch side
 
 
 @pytest.fixture(scope="module")
 def view_reference(tmp_path_factory):
     """(Cycles' Diffuse Color, ours) (H, W, 3) of Principled patches (one row per
-    VIEW_CASES) tilted to an orthographic camera so that each column is seen at VIEW_COS
+    VIEW_CASES: Principled inputs, or a builder) tilted to an orthographic camera so that each column is seen at VIEW_COS
     (each patch 1 / cos long, projecting to 1 x 1)."""
     from lpv_core import engine
     from lpv_core.render import deferred
@@ -379,10 +380,13 @@ def view_reference(tmp_path_factory):
     scene = bpy.context.scene
     for row, (name, inputs) in enumerate(VIEW_CASES.items()):
         mat, nt, out = new_material(f"view {name}")
-        p = principled(nt)
-        for key, value in inputs.items():
-            p.inputs[key].default_value = value
-        to_surface(nt, out, p)
+        if callable(inputs):
+            inputs(nt, out)
+        else:
+            p = principled(nt)
+            for key, value in inputs.items():
+                p.inputs[key].default_value = value
+            to_surface(nt, out, p)
         for c, mu in enumerate(VIEW_COS):
             rise = float(np.sqrt(1.0 - mu * mu)) / mu  # normal (0, -sin, cos)
             me = bpy.data.meshes.new(f"{name} {mu}")

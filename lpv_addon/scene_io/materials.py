@@ -270,6 +270,26 @@ class _Evaluator:
         head = total[-1]
         return np.where(head > 0, total / np.where(head > 0, head, 1.0), 1.0)
 
+    def view_total(self, socket, stack=(), depth=0) -> np.ndarray:
+        """(K, 3) the mean Diffuse Color of the shader feeding ``socket`` at core SHARE_COS: a
+        Principled's head-on mean x its view_share, Mix and Add Shader weighted as shader()
+        weighs them, every other shader its head-on mean (no view table)."""
+        node, _, stack = self.resolve(socket, stack)
+        k = len(core.scene.model.SHARE_COS)
+        if node is None or depth > 32:
+            return np.zeros((k, 3))
+        kind = node.bl_idname
+        if kind in ("ShaderNodeMixShader", "ShaderNodeAddShader"):
+            a, b = (self.view_total(x, stack, depth + 1) for x in node.inputs
+                    if x.type == "SHADER")
+            if kind == "ShaderNodeAddShader":
+                return a + b
+            f = float(np.clip(self.value(node.inputs[0], stack), 0.0, 1.0))
+            return (1.0 - f) * a + f * b
+        self.share = None
+        mean = np.broadcast_to(self.shader(socket, stack, depth)[0].mean(), (3,))
+        return mean * (1.0 if self.share is None else self.share) * np.ones((k, 1))
+
     # ---------------------------------------------------------------------- colour algebra
 
     def combine(self, a: _Color, wa: float, b: _Color, wb: float) -> _Color:
@@ -635,10 +655,13 @@ def material_info(mat) -> MaterialInfo:
         glossy = glossy_reflectance(ev, surface)
     m = core.scene.Material(mat.name, np.clip(diffuse.const, 0.0, None).astype(np.float32))
     m.emission = np.clip(np.asarray(emission, np.float64), 0.0, None).astype(np.float32)
-    if output is not None and ev.share is not None and getattr(
-            ev.resolve(surface)[0], "bl_idname", "") == "ShaderNodeBsdfPrincipled":
-        share = np.broadcast_to(ev.share, (len(core.scene.model.SHARE_COS), 3))
-        if diffuse.const.any() and not np.allclose(share, 1.0):  # a Principled's own share
+    if output is not None:
+        counted = ev.defaulted  # (the second walk reads the same images again)
+        total = ev.view_total(surface)
+        ev.defaulted = counted
+        head = total[-1]
+        share = np.where(head > 0, total / np.where(head > 0, head, 1.0), 1.0)
+        if np.isfinite(share).all() and not np.allclose(share, 1.0):
             m.diffuse_share = np.ascontiguousarray(share, np.float32)
     m.specular = np.clip(np.nan_to_num(glossy), 0.0, None).astype(np.float32)
     info = MaterialInfo(m, color_attribute=diffuse.attr, notes=ev.notes,
