@@ -91,6 +91,9 @@ class MaterialInfo:
     defaulted_texels: int = 0  # non-finite or negative texels of its images set to 0
 
 
+_MEANS: dict[str, np.ndarray] = {}  # pixels' digest -> their mean colour
+
+
 @dataclass
 class _Color:
     """A colour as a product: ``const`` x image ``pixels`` at the UV (when set) x the colour
@@ -105,7 +108,14 @@ class _Color:
     def mean(self) -> np.ndarray:
         if self.pixels is None:
             return self.const
-        return self.const * self.pixels.reshape(-1, 3).mean(axis=0, dtype=np.float64)
+        m = _MEANS.get(self.digest) if self.digest else None
+        if m is None:  # kept per digest: the view share's walk asks each extraction
+            m = self.pixels.reshape(-1, 3).mean(axis=0, dtype=np.float64)
+            if self.digest:
+                if len(_MEANS) > 4096:
+                    _MEANS.clear()
+                _MEANS[self.digest] = m
+        return self.const * m
 
 
 def _const(c) -> _Color:
@@ -583,28 +593,34 @@ _VIEW: dict = {}  # principled_view.json, read on first use
 
 def _view_table(name: str, roughness: float, f0: float | None = None) -> np.ndarray:
     """(K, 1) a measured table of principled_view.json at core SHARE_COS: "transmitted" or
-    "coat_transmitted" (the specular or coat layer's 1 - E, bilinear in roughness^2 (GGX's alpha, where the tables are
-    smooth) and F0, clamped to the table) or "sheen_albedo" (linear in sheen roughness)
-    (python -m tools.measure_principled_layers --view)."""
+    "coat_transmitted" (the specular or coat layer's 1 - E, bilinear in roughness^2 (GGX's
+    alpha, where the tables are smooth) and F0, clamped to the table) or "sheen_albedo"
+    (linear in sheen roughness) (python -m tools.measure_principled_layers --view)."""
     if not _VIEW:
         import json
 
         with open(os.path.join(os.path.dirname(__file__), "principled_view.json")) as f:
-            _VIEW.update(json.load(f))
-    t = np.asarray(_VIEW[name], np.float64)
+            data = json.load(f)
+        order = np.argsort(data["cos_view"])
+        _VIEW.update({k: np.asarray(v, np.float64) for k, v in data.items() if k != "blender"})
+        _VIEW["order"] = order
+        _VIEW["f0"] = ((_VIEW["ior"] - 1.0) / (_VIEW["ior"] + 1.0)) ** 2
+    t = _VIEW[name]
     r = float(np.clip(roughness, 0.0, 1.0))
     if f0 is None:  # (roughness, cos)
-        at = np.array([np.interp(r, _VIEW["roughness"], t[:, k]) for k in range(t.shape[1])])
+        at = _lerp(_VIEW["roughness"], r, t)
     else:  # (roughness, ior, cos)
-        ior = np.asarray(_VIEW["ior"], np.float64)
         f = float(np.clip(f0, 0.0, 1.0))
-        cols = np.array([[np.interp(f, ((ior - 1.0) / (ior + 1.0)) ** 2, t[i, :, k])
-                          for k in range(t.shape[2])] for i in range(t.shape[0])])
-        at = np.array([np.interp(r * r, np.square(_VIEW["roughness"]), cols[:, k])
-                       for k in range(t.shape[2])])
-    order = np.argsort(_VIEW["cos_view"])
-    return np.interp(core.scene.model.SHARE_COS, np.asarray(_VIEW["cos_view"])[order],
-                     at[order])[:, None]
+        at = _lerp(_VIEW["roughness"] ** 2, r * r, _lerp(_VIEW["f0"], f, t.swapaxes(0, 1)))
+    o = _VIEW["order"]
+    return np.interp(core.scene.model.SHARE_COS, _VIEW["cos_view"][o], at[o])[:, None]
+
+
+def _lerp(grid: np.ndarray, x: float, values: np.ndarray) -> np.ndarray:
+    """``values`` (len(grid), ...) linear in ``x`` along its first axis (held at the ends)."""
+    i = int(np.clip(np.searchsorted(grid, x) - 1, 0, grid.size - 2))
+    w = float(np.clip((x - grid[i]) / (grid[i + 1] - grid[i]), 0.0, 1.0))
+    return (1.0 - w) * values[i] + w * values[i + 1]
 
 
 def _by_identifier(sockets, identifier: str):
