@@ -174,17 +174,15 @@ def _one_tap(shadow, pos: np.ndarray, nrm: np.ndarray) -> np.ndarray:
     solid), which the offset and bias alone light (docs/decisions.md)."""
     v, half, res = shadow.views[0].view, shadow.views[0].half_extent, shadow.resolution
     world = 2.0 * half / res
-    depths = shadow.stacked()[0]
-    o = [pos[:, i] + nrm[:, i] * world * 1.5 for i in range(3)]
-    u, w, d = ((o[0] * v[r, 0] + o[1] * v[r, 1] + o[2] * v[r, 2] + v[r, 3]) for r in range(3))
-    u, w = u / half, w / half
-    inside = (np.abs(u) <= 1.0) & (np.abs(w) <= 1.0)
-    x = np.minimum(((np.where(inside, u, 0.0) + 1.0) * 0.5 * res).astype(np.int64), res - 1)
-    y = np.minimum(((1.0 - np.where(inside, w, 0.0)) * 0.5 * res).astype(np.int64), res - 1)
-    lit = ~(inside & (-d > depths[y, x].astype(np.float64) + world * 1.5))
+    off, depths = 1.5 * world, shadow.stacked()[0]
     q = [pos[:, 0] * v[r, 0] + pos[:, 1] * v[r, 1] + pos[:, 2] * v[r, 2] + v[r, 3]
          for r in range(3)]
     m = [nrm[:, 0] * v[r, 0] + nrm[:, 1] * v[r, 1] + nrm[:, 2] * v[r, 2] for r in range(3)]
+    u, w = (q[0] + off * m[0]) / half, (q[1] + off * m[1]) / half
+    inside = (np.abs(u) <= 1.0) & (np.abs(w) <= 1.0)
+    x = np.minimum(((np.where(inside, u, 0.0) + 1.0) * 0.5 * res).astype(np.int64), res - 1)
+    y = np.minimum(((1.0 - np.where(inside, w, 0.0)) * 0.5 * res).astype(np.int64), res - 1)
+    lit = ~(inside & (-(q[2] + off * m[2]) > depths[y, x].astype(np.float64) + off))
     u, w = q[0] / half, q[1] / half
     lim = 1.0 + 2.0 / res  # a surfel on the LPV box's edge: in its window up to rounding
     inside = (np.abs(u) <= lim) & (np.abs(w) <= lim)

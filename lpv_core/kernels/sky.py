@@ -40,7 +40,7 @@ def _sky_kernel(pos, nrm, dirs, weights, rad, views, half, depths, pcf, first_hi
     for k in range(k_count):
         dark = rad[k, 0] == 0.0 and rad[k, 1] == 0.0 and rad[k, 2] == 0.0
         world = 2.0 * half[k] / res  # a texel; render/direct.py's offset and bias: 1.5 of them
-        eps = first_hit * world
+        eps, off, lim = first_hit * world, 1.5 * world, 1.0 + 2.0 / res
         v = views[k]
         for m in range(m0, m1):
             nx, ny, nz = nrm[m, 0], nrm[m, 1], nrm[m, 2]
@@ -50,22 +50,35 @@ def _sky_kernel(pos, nrm, dirs, weights, rad, views, half, depths, pcf, first_hi
             den[m - m0] += weights[k] * c
             if dark:
                 continue
-            ox, oy, oz = (pos[m, 0] + nx * world * 1.5, pos[m, 1] + ny * world * 1.5,
-                          pos[m, 2] + nz * world * 1.5)
-            d = -(v[2, 0] * ox + v[2, 1] * oy + v[2, 2] * oz + v[2, 3])
             if pcf:
+                ox, oy, oz = (pos[m, 0] + nx * world * 1.5, pos[m, 1] + ny * world * 1.5,
+                              pos[m, 2] + nz * world * 1.5)
+                d = -(v[2, 0] * ox + v[2, 1] * oy + v[2, 2] * oz + v[2, 3])
                 vis = _pcf(v, True, half[k], depths[k], res, ox, oy, oz, d, world * 1.5)
-            else:  # sky._one_tap: the offset, biased test and the first-hit test
-                u = (ox * v[0, 0] + oy * v[0, 1] + oz * v[0, 2] + v[0, 3]) / half[k]
-                w = (ox * v[1, 0] + oy * v[1, 1] + oz * v[1, 2] + v[1, 3]) / half[k]
+            else:  # sky._one_tap: the offset, biased test, then the first-hit test
+                px, py, pz = pos[m, 0], pos[m, 1], pos[m, 2]
+                qx = px * v[0, 0] + py * v[0, 1] + pz * v[0, 2] + v[0, 3]
+                qy = px * v[1, 0] + py * v[1, 1] + pz * v[1, 2] + v[1, 3]
+                qz = px * v[2, 0] + py * v[2, 1] + pz * v[2, 2] + v[2, 3]
+                mx = nx * v[0, 0] + ny * v[0, 1] + nz * v[0, 2]
+                my = nx * v[1, 0] + ny * v[1, 1] + nz * v[1, 2]
+                mz = nx * v[2, 0] + ny * v[2, 1] + nz * v[2, 2]
+                u, w = (qx + off * mx) / half[k], (qy + off * my) / half[k]
                 vis = 1.0
                 if abs(u) <= 1.0 and abs(w) <= 1.0:
                     x = min(int((u + 1.0) * 0.5 * res), res - 1)
                     y = min(int((1.0 - w) * 0.5 * res), res - 1)
-                    vis = 0.0 if d > depths[k, y, x] + world * 1.5 else 1.0
-                if vis > 0.0:
-                    vis = _first_hit(v, half[k], depths[k], res, pos[m, 0], pos[m, 1],
-                                     pos[m, 2], nx, ny, nz, eps)
+                    if -(qz + off * mz) > depths[k, y, x] + off:
+                        vis = 0.0
+                u, w = qx / half[k], qy / half[k]
+                if vis > 0.0 and abs(u) <= lim and abs(w) <= lim:
+                    x = min(max(int((u + 1.0) * 0.5 * res), 0), res - 1)
+                    y = min(max(int((1.0 - w) * 0.5 * res), 0), res - 1)
+                    cx = ((x + 0.5) * 2.0 / res - 1.0) * half[k]
+                    cy = (1.0 - (y + 0.5) * 2.0 / res) * half[k]
+                    plane = (mx * (cx - qx) + my * (cy - qy)) / max(mz, 1e-12) - qz
+                    if depths[k, y, x] < plane - eps:
+                        vis = 0.0
             s = weights[k] * c * vis
             out[m, 0] += s * rad[k, 0]
             out[m, 1] += s * rad[k, 1]
@@ -74,24 +87,3 @@ def _sky_kernel(pos, nrm, dirs, weights, rad, views, half, depths, pcf, first_hi
         f = np.pi / den[m - m0] if den[m - m0] > 0.0 else 0.0
         out[m, 0], out[m, 1], out[m, 2] = out[m, 0] * f, out[m, 1] * f, out[m, 2] * f
 
-
-@jit.kernel
-def _first_hit(v, half, depth, res, px, py, pz, nx, ny, nz, eps):  # pragma: no cover
-    """sky._one_tap's first-hit test of one surfel: 0 where the texel it falls in holds a
-    surface in front of its plane (at the texel's centre) by over ``eps``, else 1."""
-    qx = px * v[0, 0] + py * v[0, 1] + pz * v[0, 2] + v[0, 3]
-    qy = px * v[1, 0] + py * v[1, 1] + pz * v[1, 2] + v[1, 3]
-    qz = px * v[2, 0] + py * v[2, 1] + pz * v[2, 2] + v[2, 3]
-    u, w = qx / half, qy / half
-    lim = 1.0 + 2.0 / res
-    if not (abs(u) <= lim and abs(w) <= lim):
-        return 1.0
-    x = min(max(int((u + 1.0) * 0.5 * res), 0), res - 1)
-    y = min(max(int((1.0 - w) * 0.5 * res), 0), res - 1)
-    mx = nx * v[0, 0] + ny * v[0, 1] + nz * v[0, 2]
-    my = nx * v[1, 0] + ny * v[1, 1] + nz * v[1, 2]
-    mz = nx * v[2, 0] + ny * v[2, 1] + nz * v[2, 2]
-    cx = ((x + 0.5) * 2.0 / res - 1.0) * half
-    cy = (1.0 - (y + 0.5) * 2.0 / res) * half
-    plane = (mx * (cx - qx) + my * (cy - qy)) / max(mz, 1e-12) - qz
-    return 0.0 if depth[y, x] < plane - eps else 1.0
