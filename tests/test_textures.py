@@ -660,7 +660,7 @@ def test_view_share_per_pixel_carried_and_validated(tmp_path):
     eye, the share linear in the cosine), untextured scenes included; a scene without one
     stays bit-identical; the worker carries it; make_scene drops a non-finite one."""
     from lpv_core import worker
-    from lpv_core.scene.model import SHARE_COS
+    from lpv_core.scene.textures import SHARE_COS
 
     plain = checker_room(None)
     base = deferred.render(e := engine.Engine(), plain, e.update(plain))["Diffuse Color"]

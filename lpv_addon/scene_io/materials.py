@@ -262,7 +262,7 @@ class _Evaluator:
         def val(name, default=0.0):
             return self.value(inp[name], stack) if name in inp else default
 
-        mu = np.asarray(core.scene.model.SHARE_COS, np.float64)[:, None]
+        mu = np.asarray(core.scene.textures.SHARE_COS, np.float64)[:, None]
         spec = np.clip(_view_table("transmitted", val("Roughness", 0.5), f0), 0.0, 1.0)
         sheen = np.clip(val("Sheen Weight"), 0.0, 1.0) * _view_table(
             "sheen_albedo", np.clip(val("Sheen Roughness", 0.5), 0.0, 1.0))
@@ -285,7 +285,7 @@ class _Evaluator:
         Principled's head-on mean x its view_share, Mix and Add Shader weighted as shader()
         weighs them, every other shader its head-on mean (no view table)."""
         node, _, stack = self.resolve(socket, stack)
-        k = len(core.scene.model.SHARE_COS)
+        k = len(core.scene.textures.SHARE_COS)
         if node is None or depth > 32:
             return np.zeros((k, 3))
         kind = node.bl_idname
@@ -613,7 +613,7 @@ def _view_table(name: str, roughness: float, f0: float | None = None) -> np.ndar
         f = float(np.clip(f0, 0.0, 1.0))
         at = _lerp(_VIEW["roughness"] ** 2, r * r, _lerp(_VIEW["f0"], f, t.swapaxes(0, 1)))
     o = _VIEW["order"]
-    return np.interp(core.scene.model.SHARE_COS, _VIEW["cos_view"][o], at[o])[:, None]
+    return np.interp(core.scene.textures.SHARE_COS, _VIEW["cos_view"][o], at[o])[:, None]
 
 
 def _lerp(grid: np.ndarray, x: float, values: np.ndarray) -> np.ndarray:

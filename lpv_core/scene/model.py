@@ -17,10 +17,6 @@ from .textures import Texture
 from .world import World
 
 LIGHT_TYPES = ("POINT", "SPOT", "SUN", "AREA")
-# Cosines of the view angle at which Material.diffuse_share is given (those Cycles' layers
-# were measured at: tools/measure_principled_layers.py --view), ascending.
-SHARE_COS = (0.02, 0.04, 0.07, 0.1, 0.15, 0.2, 0.26, 0.33, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 0.95,
-             1.0)
 
 
 @dataclass
@@ -37,7 +33,7 @@ class Material:
     # units) and the GI intensity of that light, like a light's.
     emission: np.ndarray = field(default_factory=lambda: np.zeros(3, np.float32))
     emission_gi_intensity: float = 1.0
-    # Diffuse Color over the view angle as multiples of ``albedo`` (SHARE_COS, 3), 1 head-on:
+    # Diffuse Color over the view angle as multiples of ``albedo`` (textures.SHARE_COS, 3), 1 head-on:
     # Cycles' layers above the diffuse reflect more towards grazing. None: view-independent.
     diffuse_share: np.ndarray | None = None
     # Colour and strength this material bounces into GI (None: use albedo).

@@ -9,6 +9,10 @@ import numpy as np
 
 INTERPOLATIONS = ("Linear", "Closest", "Cubic", "Smart")
 EXTENSIONS = ("REPEAT", "EXTEND", "CLIP", "MIRROR")
+# Cosines of the view angle at which Material.diffuse_share is given (those Cycles' layers
+# were measured at: tools/measure_principled_layers.py --view), ascending.
+SHARE_COS = (0.02, 0.04, 0.07, 0.1, 0.15, 0.2, 0.26, 0.33, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 0.95,
+             1.0)
 
 
 @dataclass
@@ -375,7 +379,7 @@ def plane_barycentric(corners: np.ndarray, origins: np.ndarray, directions: np.n
 
 def view_shares(materials: list, material_index) -> tuple | None:
     """(per-triangle row (T,) int32, -1 none; table (S, K, 3) float32) of the materials'
-    diffuse_share over model.SHARE_COS, or None when no material has one."""
+    diffuse_share over SHARE_COS, or None when no material has one."""
     rows = [k for k, m in enumerate(materials) if getattr(m, "diffuse_share", None) is not None]
     if not rows:
         return None
@@ -388,9 +392,7 @@ def view_shares(materials: list, material_index) -> tuple | None:
 
 def share_at(table: np.ndarray, rows: np.ndarray, cos_view: np.ndarray) -> np.ndarray:
     """(N, 3) diffuse share of rows ``rows`` (N,) of ``table`` (S, K, 3) at ``cos_view`` (N,):
-    linear in the cosine between model.SHARE_COS, held at its ends."""
-    from .model import SHARE_COS
-
+    linear in the cosine between SHARE_COS, held at its ends."""
     grid = np.asarray(SHARE_COS, np.float64)
     x = np.clip(np.nan_to_num(np.abs(cos_view), nan=1.0), grid[0], grid[-1])
     i = np.clip(np.searchsorted(grid, x) - 1, 0, grid.size - 2)
