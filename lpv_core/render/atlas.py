@@ -61,7 +61,9 @@ class DepthAtlas:
 
         raster, ctx, k = self.raster, self.raster.ctx, len(views)
         # columns of tiles as tall as the driver allows, each read into its place in the stack
-        ny = max(1, min(k, ctx.info["GL_MAX_VIEWPORT_DIMS"][1] // resolution))
+        tallest = min(ctx.info["GL_MAX_VIEWPORT_DIMS"][1], ctx.info["GL_MAX_TEXTURE_SIZE"],
+                      ctx.info["GL_MAX_RENDERBUFFER_SIZE"])
+        ny = max(1, min(k, tallest // resolution))
         nx = -(-k // ny)
         size = (nx * resolution, ny * resolution)
         held = (0, 0) if self._fbo is None else self._fbo[0]
