@@ -5,6 +5,8 @@ one pass per point, in the same float64 arithmetic as the numpy code."""
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 
 from ..runtime import jit, pool
@@ -13,7 +15,7 @@ from ..scene.model import Light
 
 KINDS = {"POINT": 0, "SPOT": 1, "AREA": 2, "SUN": 3}  # the light types the kernel lights
 # render.direct's constants (the stage owns them; a kernel never imports its stage)
-SEARCH_SIDE, FILTER_SIDE, SEARCH_AT = 6, 6, 0.5
+SEARCH_SIDE, FILTER_SIDE, SEARCH_AT, PYRAMID_FROM = 6, 6, 0.5, 2
 HARD, SPHERE, RECTANGLE, ELLIPSE, CONE = 0, 1, 2, 3, 4
 HASH_A = (12.9898, 78.233, 37.719, 43758.5453)
 HASH_B = (39.3468, 11.135, 83.155, 24634.6345)
@@ -42,8 +44,12 @@ def _shadow_args(shadow, src, light: Light) -> tuple:
     sv = np.zeros(3) if src is None else np.asarray(src.v, np.float64)
     srad = 0.0 if src is None else float(src.radius)
     hashes = np.array(HASH_A + HASH_B, np.float64)
+    if shadowed and kind != HARD:
+        pyr, offs, sizes = shadow.pyramid()
+    else:
+        pyr, offs, sizes = np.zeros((0, 0, 8), np.float32), np.zeros(1, np.int64), np.ones(1, np.int64)
     return (mats, ortho, scale, depths, face_view, single, res, kind, su, sv, srad, near,
-            hashes)
+            hashes, pyr, offs, sizes)
 
 
 def irradiance(light: Light, positions: np.ndarray, normals: np.ndarray,
@@ -70,8 +76,20 @@ def irradiance(light: Light, positions: np.ndarray, normals: np.ndarray,
     args = (kind, np.asarray(light.position, np.float64), np.asarray(light.direction, np.float64),
             float(light.power), cos_half, smooth, polys, radiance, tan_half, norm,
             *_shadow_args(shadow, src, light), pos, nrm, out)
-    pool.in_halves(lambda sl: _direct_kernel(*args, sl.start, sl.stop), pos.shape[0])
+    _in_parts(lambda sl: _direct_kernel(*args, sl.start, sl.stop), pos.shape[0])
     return out[:, None] * color
+
+
+def _in_parts(run, n: int, smallest: int = 4096) -> None:
+    """run(slice) over 0..n in 8 parts per pool thread (pool.in_halves' rule otherwise): soft
+    shadows make some rows of the frame many times dearer than others (halves left a thread
+    idle: the two halves of the Cornell box's spot light frame took 1.7 and 20 ms)."""
+    if n < smallest:
+        run(slice(0, n))
+        return
+    edges = np.linspace(0, n, 8 * pool.workers() + 1).astype(np.int64)
+    for _ in pool.executor().map(run, [slice(a, b) for a, b in itertools.pairwise(edges)]):
+        pass
 
 
 def visibility(shadow, src, positions: np.ndarray, normals: np.ndarray) -> np.ndarray:
@@ -82,7 +100,7 @@ def visibility(shadow, src, positions: np.ndarray, normals: np.ndarray) -> np.nd
     out = np.empty(pos.shape[0], np.float64)
     args = (np.asarray(light.position, np.float64), *_shadow_args(shadow, src, light),
             pos, nrm, out)
-    pool.in_halves(lambda sl: _visibility_kernel(*args, sl.start, sl.stop), pos.shape[0])
+    _in_parts(lambda sl: _visibility_kernel(*args, sl.start, sl.stop), pos.shape[0])
     return out
 
 
@@ -157,7 +175,7 @@ def _area(polys, radiance, tan_half, norm, lp, axis, px, py, pz, nx, ny, nz):  #
 @jit.kernel
 def _direct_kernel(kind, lp, axis, power, cos_half, smooth, polys, radiance, tan_half, norm,
                    mats, ortho, scale, depths, face_view, single, res, skind, su, sv, srad,
-                   near, hashes, pos, nrm, out, m0, m1):  # pragma: no cover
+                   near, hashes, pyr, offs, sizes, pos, nrm, out, m0, m1):  # pragma: no cover
     """``irradiance`` (per unit colour) of points m0..m1-1: lights.intensity and the cosine
     over d^2 (the sun: E cos; area lights: the contour integral), then for lit points with
     views their ``visibility``."""
@@ -187,18 +205,19 @@ def _direct_kernel(kind, lp, axis, power, cos_half, smooth, polys, radiance, tan
             e = inten * cos_r / d2
         if e > 0 and mats.shape[0] > 0:
             e *= _visibility(lp, mats, ortho, scale, depths, face_view, single, res, skind, su,
-                             sv, srad, near, hashes, px, py, pz, nx, ny, nz)
+                             sv, srad, near, hashes, pyr, offs, sizes, px, py, pz, nx, ny, nz)
         out[m] = e
 
 
 @jit.kernel
 def _visibility_kernel(lp, mats, ortho, scale, depths, face_view, single, res, skind, su, sv,
-                       srad, near, hashes, pos, nrm, out, m0, m1):  # pragma: no cover
+                       srad, near, hashes, pyr, offs, sizes, pos, nrm, out, m0,
+                       m1):  # pragma: no cover
     """``visibility`` of points m0..m1-1."""
     for m in range(m0, m1):
         out[m] = _visibility(lp, mats, ortho, scale, depths, face_view, single, res, skind,
-                             su, sv, srad, near, hashes, pos[m, 0], pos[m, 1], pos[m, 2],
-                             nrm[m, 0], nrm[m, 1], nrm[m, 2])
+                             su, sv, srad, near, hashes, pyr, offs, sizes, pos[m, 0],
+                             pos[m, 1], pos[m, 2], nrm[m, 0], nrm[m, 1], nrm[m, 2])
 
 
 @jit.kernel
@@ -218,7 +237,7 @@ def _view_of(lp, face_view, single, x, y, z):  # pragma: no cover
 
 @jit.kernel
 def _visibility(lp, mats, ortho, scale, depths, face_view, single, res, skind, su, sv, srad,
-                near, hashes, px, py, pz, nx, ny, nz):  # pragma: no cover
+                near, hashes, pyr, offs, sizes, px, py, pz, nx, ny, nz):  # pragma: no cover
     """direct.visibility of one receiver: its view, normal offset, distance and bias
     (direct._receivers), the bilinear test (direct._hard), then for a source with a size the
     soft shadow (direct._soft)."""
@@ -244,7 +263,8 @@ def _visibility(lp, mats, ortho, scale, depths, face_view, single, res, skind, s
     if skind == HARD:
         return hard
     return _soft(lp, mats, ortho, scale, depths, face_view, single, res, skind, su, sv, srad,
-                 near, hashes, px, py, pz, nx, ny, nz, qx, qy, qz, dist, bias, texel, hard)
+                 near, hashes, pyr, offs, sizes, view, px, py, pz, nx, ny, nz, qx, qy, qz, dist,
+                 bias, texel, hard)
 
 
 @jit.kernel
@@ -316,12 +336,11 @@ def _stratum(idx, side, sa, sb, round_):  # pragma: no cover
 
 
 @jit.kernel
-def _lookup(lp, mats, ortho, scale, depths, face_view, single, res, x, y, z,
-            qx, qy, qz, nx, ny, nz, dist, bias):  # pragma: no cover
-    """direct._lookup of one tap point: (depth, occludes)."""
+def _texel(lp, mats, ortho, scale, face_view, single, res, x, y, z):  # pragma: no cover
+    """direct._texels of one point: (view, column, row, in front of the eye, inside)."""
     view = _view_of(lp, face_view, single, x, y, z)
     if view < 0:
-        return np.inf, False
+        return -1, 0, 0, False, False
     mat = mats[view]
     s = scale[view]
     vx = x * mat[0, 0] + y * mat[0, 1] + z * mat[0, 2] + mat[0, 3]
@@ -335,12 +354,21 @@ def _lookup(lp, mats, ortho, scale, depths, face_view, single, res, x, y, z,
         ok = zz > 0
         inv = 1.0 / (zz * s) if ok else 1.0 / s
     u, v = vx * inv, vy * inv
-    if single:
-        ok = ok and abs(u) <= 1.0 and abs(v) <= 1.0
-    if not ok:
-        return np.inf, False
     ix = int(min(max(np.floor((u + 1.0) * 0.5 * res), 0.0), res - 1.0))
     iy = int(min(max(np.floor((1.0 - v) * 0.5 * res), 0.0), res - 1.0))
+    return view, ix, iy, ok, ok and abs(u) <= 1.0 and abs(v) <= 1.0
+
+
+@jit.kernel
+def _lookup(lp, mats, ortho, scale, depths, face_view, single, res, x, y, z,
+            qx, qy, qz, nx, ny, nz, dist, bias):  # pragma: no cover
+    """direct._lookup of one tap point: (depth, occludes)."""
+    view, ix, iy, front, inside = _texel(lp, mats, ortho, scale, face_view, single, res, x, y,
+                                         z)
+    if view < 0 or not (inside if single else front):
+        return np.inf, False
+    mat = mats[view]
+    s = scale[view]
     d = np.float64(depths[view, iy, ix])
     if not d < dist - bias:
         return d, False
@@ -366,8 +394,116 @@ def _lookup(lp, mats, ortho, scale, depths, face_view, single, res, x, y, z,
 
 
 @jit.kernel
+def _corner(k, sun, lp, ux, uy, uz, vx, vy, vz, s, qx, qy, qz):  # pragma: no cover
+    """direct._corners' point k (0-3), or the receiver q (4)."""
+    if k == 4:
+        return qx, qy, qz
+    a, b = (1.0 if k < 2 else -1.0), (1.0 if k % 2 == 0 else -1.0)
+    ox, oy, oz = a * ux + b * vx, a * uy + b * vy, a * uz + b * vz
+    if sun:
+        return qx + s * ox, qy + s * oy, qz + s * oz
+    cx, cy, cz = lp[0] + ox, lp[1] + oy, lp[2] + oz
+    return cx + s * (qx - cx), cy + s * (qy - cy), cz + s * (qz - cz)
+
+
+@jit.kernel
+def _box(lp, mats, ortho, scale, face_view, single, res, vw, sun, ux, uy, uz, vx, vy, vz, s,
+         qx, qy, qz):  # pragma: no cover
+    """direct._box of one receiver: (x0, x1, y0, y1, usable, inside)."""
+    x0 = y0 = res
+    x1 = y1 = -1
+    usable = inside = True
+    for k in range(5):
+        x, y, z = _corner(k, sun, lp, ux, uy, uz, vx, vy, vz, s, qx, qy, qz)
+        view, ix, iy, front, ins = _texel(lp, mats, ortho, scale, face_view, single, res, x, y,
+                                          z)
+        usable = usable and view == vw and front
+        inside = inside and view == vw and ins
+        x0, x1, y0, y1 = min(x0, ix), max(x1, ix), min(y0, iy), max(y1, iy)
+    return (max(x0 - 1, 0), min(x1 + 1, res - 1), max(y0 - 1, 0), min(y1 + 1, res - 1), usable,
+            inside)
+
+
+@jit.kernel
+def _clear_across(lp, mats, scale, res, pyr, offs, sizes, ux, uy, uz, vx, vy, vz, s, qx, qy,
+                  qz, nx, ny, nz, lim, bias):  # pragma: no cover
+    """direct._clear_across of one receiver."""
+    for i in range(mats.shape[0]):
+        mat = mats[i]
+        n_front = 0
+        fx0 = fy0 = np.inf
+        fx1 = fy1 = -np.inf
+        for k in range(5):
+            x, y, z = _corner(k, False, lp, ux, uy, uz, vx, vy, vz, s, qx, qy, qz)
+            px = x * mat[0, 0] + y * mat[0, 1] + z * mat[0, 2] + mat[0, 3]
+            py = x * mat[1, 0] + y * mat[1, 1] + z * mat[1, 2] + mat[1, 3]
+            pz = x * mat[2, 0] + y * mat[2, 1] + z * mat[2, 2] + mat[2, 3]
+            if not -pz > 0:
+                continue
+            n_front += 1
+            w = -pz * scale[i]
+            fx = min(max(np.floor((px / w + 1.0) * 0.5 * res), -2.0), res + 1.0)
+            fy = min(max(np.floor((1.0 - py / w) * 0.5 * res), -2.0), res + 1.0)
+            fx0, fx1, fy0, fy1 = min(fx0, fx), max(fx1, fx), min(fy0, fy), max(fy1, fy)
+        if n_front == 0:
+            continue
+        if n_front < 5:
+            return False
+        if not (fx1 >= -1 and fx0 <= res and fy1 >= -1 and fy0 <= res):
+            continue
+        x0, x1 = min(max(int(fx0) - 1, 0), res - 1), min(max(int(fx1) + 1, 0), res - 1)
+        y0, y1 = min(max(int(fy0) - 1, 0), res - 1), min(max(int(fy1) + 1, 0), res - 1)
+        if not _box_test(pyr, offs, sizes, i, x0, x1, y0, y1, qx, qy, qz, nx, ny, nz, lim, bias,
+                         False)[0]:
+            return False
+    return True
+
+
+@jit.kernel
+def _block(pyr, offs, sizes, vw, lev, bx, by, nx, ny, nz, nq, lim, bias,
+           umbra):  # pragma: no cover
+    """direct._box_test's test of one block: (passes, its least depth)."""
+    at = offs[lev] + by * sizes[lev] + bx
+    lo, hi = np.float64(pyr[vw, at, 0]), np.float64(pyr[vw, at, 1])
+    ax, bx_ = nx * np.float64(pyr[vw, at, 2]), nx * np.float64(pyr[vw, at, 5])
+    ay, by_ = ny * np.float64(pyr[vw, at, 3]), ny * np.float64(pyr[vw, at, 6])
+    az, bz = nz * np.float64(pyr[vw, at, 4]), nz * np.float64(pyr[vw, at, 7])
+    if umbra:
+        return hi < lim and min(ax, bx_) + min(ay, by_) + min(az, bz) - nq > bias, lo
+    return lo >= lim or max(ax, bx_) + max(ay, by_) + max(az, bz) - nq <= 0.0, lo
+
+
+@jit.kernel
+def _box_test(pyr, offs, sizes, vw, x0, x1, y0, y1, qx, qy, qz, nx, ny, nz, lim, bias,
+              umbra):  # pragma: no cover
+    """direct._box_test of one receiver's box: (passes, least depth)."""
+    lev = PYRAMID_FROM
+    while (x1 >> lev) - (x0 >> lev) > 2 or (y1 >> lev) - (y0 >> lev) > 2:
+        lev += 1
+    nq = nx * qx + ny * qy + nz * qz
+    ok = True
+    least = np.inf
+    for by in range(y0 >> lev, (y1 >> lev) + 1):
+        for bx in range(x0 >> lev, (x1 >> lev) + 1):
+            good, lo = _block(pyr, offs, sizes, vw, lev, bx, by, nx, ny, nz, nq, lim, bias,
+                              umbra)
+            least = min(least, lo)
+            if good or not ok:
+                continue
+            st = min(lev - PYRAMID_FROM, 2)
+            lv = lev - st
+            for cy in range(max(by << st, y0 >> lv), min((by + 1) << st, (y1 >> lv) + 1)):
+                for cx in range(max(bx << st, x0 >> lv), min((bx + 1) << st, (x1 >> lv) + 1)):
+                    if ok and not _block(pyr, offs, sizes, vw, lv, cx, cy, nx, ny, nz, nq, lim,
+                                         bias, umbra)[0]:
+                        ok = False
+    return ok, least
+
+
+@jit.kernel
 def _soft(lp, mats, ortho, scale, depths, face_view, single, res, skind, su, sv, srad, near,
-          hashes, px, py, pz, nx, ny, nz, qx, qy, qz, dist, bias, texel, hard):  # pragma: no cover
+          hashes, pyr, offs, sizes, view, px, py, pz, nx, ny, nz, qx, qy, qz, dist, bias, texel,
+          hard):  # pragma: no cover
     """direct._soft of one receiver (qx, qy, qz its normal-offset point)."""
     sun = skind == CONE
     round_ = skind != RECTANGLE
@@ -402,6 +538,24 @@ def _soft(lp, mats, ortho, scale, depths, face_view, single, res, skind, su, sv,
         search_px = extent * (1.0 - SEARCH_AT) / (SEARCH_AT * dist) / texel
     if not search_px >= 1.0:
         return hard
+    # direct._early_outs: lit or umbra from the pyramid, as the taps would find
+    lim = dist - bias
+    x0, x1, y0, y1, usable, _ = _box(lp, mats, ortho, scale, face_view, single, res, view, sun,
+                                     ux, uy, uz, vx, vy, vz, s, qx, qy, qz)
+    if usable:
+        clear, least = _box_test(pyr, offs, sizes, view, x0, x1, y0, y1, qx, qy, qz, nx, ny, nz,
+                                 lim, bias, False)
+        if clear:
+            return 1.0
+        su_ = max(s, dist - least) if sun else min(s, min(max(least / dist, 1e-6), 1.0))
+        x0, x1, y0, y1, _, inside = _box(lp, mats, ortho, scale, face_view, single, res, view,
+                                         sun, ux, uy, uz, vx, vy, vz, su_, qx, qy, qz)
+        if inside and _box_test(pyr, offs, sizes, view, x0, x1, y0, y1, qx, qy, qz, nx, ny,
+                                nz, lim, bias, True)[0]:
+            return 0.0
+    elif not single and _clear_across(lp, mats, scale, res, pyr, offs, sizes, ux, uy, uz, vx,
+                                      vy, vz, s, qx, qy, qz, nx, ny, nz, lim, bias):
+        return 1.0
     sa = _frac_hash(px, py, pz, hashes, 0)
     sb = _frac_hash(px, py, pz, hashes, 4)
     count = 0

@@ -27,6 +27,7 @@ from .raster import Rasterizer
 SEARCH_SIDE = 6  # blocker search: 6 x 6 strata over the light, plus the receiver's own texel
 FILTER_SIDE = 6  # percentage-closer taps: 6 x 6 strata over the light
 SEARCH_AT = 0.5  # the search looks for blockers over the half of the way nearer the receiver
+PYRAMID_FROM = 2  # the early outs' finest blocks: 4 x 4 texels (8 channels of 1/12 the map)
 # Source kinds (Source.kind), shared with kernels/direct.py
 HARD, SPHERE, RECTANGLE, ELLIPSE, CONE = 0, 1, 2, 3, 4
 
@@ -40,6 +41,7 @@ class ShadowMap:
     depths: list  # (H, W) float32, inf where nothing was hit (views of one stacked array)
     resolution: int
     _stacked: np.ndarray | None = field(default=None, repr=False, compare=False)
+    _pyramid: tuple | None = field(default=None, repr=False, compare=False)
 
     def stacked(self) -> np.ndarray:
         """The depths as one (views, H, W) float32 array (the compiled direct light reads it
@@ -48,10 +50,67 @@ class ShadowMap:
             self._stacked = np.stack([np.asarray(d, np.float32) for d in self.depths])
         return self._stacked
 
+    def pyramid(self) -> tuple:
+        """(blocks (views, T, 8) float32, offsets, sizes): per 2^L x 2^L texel block of each
+        view, level L's sizes[L]^2 blocks row by row from offsets[L], levels PYRAMID_FROM..:
+        the least and greatest occluder depth and the bounding box (min xyz, max xyz, rounded
+        outward) of the occluders' points (texels that hit nothing left out). Built once per
+        map (2/3 of its bytes more); the soft shadows' early outs read it."""
+        if self._pyramid is None:
+            res, b = self.resolution, 1 << PYRAMID_FROM
+            n0 = -(-res // b)
+            pad = ((0, n0 * b - res), (0, n0 * b - res))
+            uc = (np.arange(res) + 0.5) / res * 2.0 - 1.0
+            gu, gv = np.meshgrid(uc, -uc)
+            views = []
+            for view, depth in zip(self.views, self.stacked()):
+                m = np.asarray(view.view, np.float64)
+                rot = m[:3, :3]
+                hit = np.isfinite(depth)[..., None]
+                d = np.where(hit, depth.astype(np.float64)[..., None], 0.0)
+                if view.ortho:  # the texel centre's ray from the near plane (_lookup's)
+                    sc = view.half_extent
+                    y0 = ((gu * sc - m[0, 3])[..., None] * rot[0]
+                          + (gv * sc - m[1, 3])[..., None] * rot[1] - m[2, 3] * rot[2])
+                    pts = y0 - d * rot[2]
+                else:
+                    sc = view.tan_half
+                    f = (gu * sc)[..., None] * rot[0] + (gv * sc)[..., None] * rot[1] - rot[2]
+                    f /= np.sqrt(np.einsum("ijk,ijk->ij", f, f))[..., None]
+                    pts = np.asarray(self.light.position, np.float64) + d * f
+                lo = np.where(hit, pts, np.inf)
+                hi = np.where(hit, pts, -np.inf)
+                chans = [(depth, np.inf, np.minimum), (depth, -np.inf, np.maximum)]
+                chans += [(lo[..., i], np.inf, np.minimum) for i in range(3)]
+                chans += [(hi[..., i], -np.inf, np.maximum) for i in range(3)]
+                levels = []
+                for c, fill, op in chans:
+                    c = np.pad(c, pad, constant_values=fill).reshape(n0, b, n0, b)
+                    c = op.reduce(op.reduce(c, axis=3), axis=1)
+                    c32 = c.astype(np.float32)  # outward: a bound stays a bound in float32
+                    c32 = np.where(op(c32, c) != c32, np.nextafter(c32, np.float32(fill)), c32)
+                    levels.append([c32])
+                    while c32.shape[0] > 1:
+                        h = (c32.shape[0] + 1) // 2
+                        if c32.shape[0] % 2:
+                            c32 = np.pad(c32, ((0, 1), (0, 1)), constant_values=fill)
+                        c32 = op.reduce(op.reduce(c32.reshape(h, 2, h, 2), axis=3), axis=1)
+                        levels[-1].append(c32)
+                views.append(np.stack([np.concatenate([lv.ravel() for lv in ch])
+                                       for ch in levels], -1))  # a block's 8: one cache line
+            sizes = [-(-res // (1 << k)) for k in range(PYRAMID_FROM + len(levels[0]))]
+            counts = [0] * PYRAMID_FROM + [z * z for z in sizes[PYRAMID_FROM:]]
+            offsets = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+            offsets[:PYRAMID_FROM] = 0
+            self._pyramid = (np.array(views, np.float32), offsets, np.array(sizes, np.int64))
+        return self._pyramid
+
     @property
     def nbytes(self) -> int:
-        """Bytes the map holds (the shadow budget counts them, render/shadows.py)."""
-        return int(self.stacked().nbytes)
+        """Bytes the map holds, its pyramid once built (the shadow budget counts them,
+        render/shadows.py)."""
+        extra = 0 if self._pyramid is None else self._pyramid[0].nbytes
+        return int(self.stacked().nbytes) + int(extra)
 
 
 @dataclass
@@ -103,7 +162,10 @@ def render_shadow_map(raster: Rasterizer, light: Light, bounds, resolution: int,
             diff = rel - (np.asarray(light.position, np.float64) - origin).astype(np.float32)
             depth = np.sqrt(np.einsum("ijk,ijk->ij", diff, diff))
         np.copyto(stack[i], np.where(target[..., 3] > 0.5, depth, np.float32(np.inf)))
-    return ShadowMap(light, views, list(stack), resolution, stack)
+    shadow = ShadowMap(light, views, list(stack), resolution, stack)
+    if source_of(light).kind != HARD:
+        shadow.pyramid()  # before the cache counts the map's bytes
+    return shadow
 
 
 def _transform(m: np.ndarray, p: np.ndarray) -> np.ndarray:
@@ -150,6 +212,33 @@ def _view_indices(shadow: ShadowMap, points: np.ndarray) -> np.ndarray:
     return np.array([face_index.get(f, -1) for f in range(6)])[axis * 2 + sign]
 
 
+def _texels(shadow: ShadowMap, x: np.ndarray):
+    """Per point (N, 3): its view (-1: none), the column and row of its texel there (clipped
+    to the map), and whether it is in front of the view's eye and inside it ([-1, 1]^2)."""
+    res = shadow.resolution
+    view_of = _view_indices(shadow, x)
+    ix, iy = np.zeros(x.shape[0], int), np.zeros(x.shape[0], int)
+    front, inside = np.zeros(x.shape[0], bool), np.zeros(x.shape[0], bool)
+    for i, view in enumerate(shadow.views):
+        sel = np.nonzero(view_of == i)[0]
+        if sel.size == 0:
+            continue
+        vp = _transform(np.asarray(view.view, np.float64), x[sel])
+        if view.ortho:
+            ok = np.ones(sel.size, bool)
+            inv = np.full(sel.size, 1.0 / view.half_extent)
+        else:
+            z = -vp[:, 2]
+            ok = z > 0
+            inv = np.where(ok, 1.0 / np.where(ok, z * view.tan_half, 1.0), 1.0 / view.tan_half)
+        u, v = vp[:, 0] * inv, vp[:, 1] * inv
+        front[sel] = ok
+        inside[sel] = ok & (np.abs(u) <= 1.0) & (np.abs(v) <= 1.0)
+        ix[sel] = np.clip(np.floor((u + 1.0) * 0.5 * res), 0, res - 1).astype(int)
+        iy[sel] = np.clip(np.floor((1.0 - v) * 0.5 * res), 0, res - 1).astype(int)
+    return view_of, ix, iy, front, inside
+
+
 def _lookup(shadow: ShadowMap, x: np.ndarray, p_off: np.ndarray, n: np.ndarray,
             dist: np.ndarray, bias: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """For tap points x (N, 3): the map's depth at the texel each falls in (inf outside the
@@ -162,27 +251,15 @@ def _lookup(shadow: ShadowMap, x: np.ndarray, p_off: np.ndarray, n: np.ndarray,
     depth_out = np.full(x.shape[0], np.inf)
     blocked = np.zeros(x.shape[0], bool)
     single = light.type == "SUN" or len(shadow.views) == 1
-    view_of = _view_indices(shadow, x)
+    view_of, ix_all, iy_all, front, inside = _texels(shadow, x)
     for i, (view, depth) in enumerate(zip(shadow.views, shadow.depths)):
         sel = np.nonzero(view_of == i)[0]
         if sel.size == 0:
             continue
         m = np.asarray(view.view, np.float64)
-        vp = _transform(m, x[sel])
-        if view.ortho:
-            scale = view.half_extent
-            ok = np.ones(sel.size, bool)
-            inv = np.full(sel.size, 1.0 / scale)
-        else:
-            scale = view.tan_half
-            z = -vp[:, 2]
-            ok = z > 0
-            inv = np.where(ok, 1.0 / np.where(ok, z * scale, 1.0), 1.0 / scale)
-        u, v = vp[:, 0] * inv, vp[:, 1] * inv
-        if single:
-            ok &= (np.abs(u) <= 1.0) & (np.abs(v) <= 1.0)
-        ix = np.clip(np.floor((u + 1.0) * 0.5 * res), 0, res - 1).astype(int)
-        iy = np.clip(np.floor((1.0 - v) * 0.5 * res), 0, res - 1).astype(int)
+        scale = view.half_extent if view.ortho else view.tan_half
+        ok = inside[sel] if single else front[sel]
+        ix, iy = ix_all[sel], iy_all[sel]
         uc = (ix + 0.5) / res * 2.0 - 1.0
         vc = 1.0 - (iy + 0.5) / res * 2.0
         rot = m[:3, :3]
@@ -310,6 +387,140 @@ def _taps(src: Source, ortho: bool, c, p_off, u, v, s, side, sa, sb):
     return q + s[:, None, None] * (p_off[:, None] - q)
 
 
+def _corners(ortho: bool, c, p_off, u, v, s) -> np.ndarray:
+    """(M, 4, 3) _taps' points of the corners +-u +-v of the source's bounding square: every
+    tap at that ``s`` lies in their convex hull, and every tap of a larger footprint's."""
+    a, b = np.array([1.0, 1.0, -1.0, -1.0]), np.array([1.0, -1.0, 1.0, -1.0])
+    off = a[:, None] * u[:, None] + b[:, None] * v[:, None]
+    if ortho:
+        return p_off[:, None] + s[:, None, None] * off
+    q = c + off
+    return q + s[:, None, None] * (p_off[:, None] - q)
+
+
+def _box(shadow: ShadowMap, corners, p_off, view):
+    """Per receiver (x0, x1, y0, y1) the texel box around its corners' texels and its own,
+    one texel wider each side (the 2x2 filter's footprint, rounding), clipped to the map;
+    whether all five points lie in front of the eye in its ``view`` (the taps' texels are
+    then in the box) and whether also inside the view."""
+    res = shadow.resolution
+    pts = np.concatenate([corners, p_off[:, None]], 1).reshape(-1, 3)
+    view_of, ix, iy, front, inside = _texels(shadow, pts)
+    ix, iy = ix.reshape(-1, 5), iy.reshape(-1, 5)
+    same = (view_of.reshape(-1, 5) == view[:, None]).all(1)
+    return (np.maximum(ix.min(1) - 1, 0), np.minimum(ix.max(1) + 1, res - 1),
+            np.maximum(iy.min(1) - 1, 0), np.minimum(iy.max(1) + 1, res - 1),
+            same & front.reshape(-1, 5).all(1), same & inside.reshape(-1, 5).all(1))
+
+
+def _box_test(shadow: ShadowMap, view, x0, x1, y0, y1, q, n, lim, bias, umbra: bool):
+    """Whether no texel of each box of ``view`` can occlude the receiver (a block's depths at
+    least ``lim`` or its occluders' box on or behind the plane through q, normal n: lit) or,
+    with ``umbra``, whether every one does (depths below ``lim``, in front of the plane by
+    ``bias``: _lookup's test), over the blocks of the level where the box covers at most
+    3 x 3, a block that fails read again as its sub-blocks two levels down (at most 4 x 4);
+    and the least depth over the first blocks."""
+    pyr, offs, sizes = shadow.pyramid()
+    m = view.size
+    lev = np.full(m, PYRAMID_FROM)
+    for _ in range(len(sizes)):
+        lev += ((x1 >> lev) - (x0 >> lev) > 2) | ((y1 >> lev) - (y0 >> lev) > 2)
+    nq = np.einsum("ij,ij->i", n, q)
+
+    def blocks(rid, lv, bx, by):
+        blk = pyr[view[rid], offs[lv] + by * sizes[lv] + bx].astype(np.float64)
+        with np.errstate(invalid="ignore"):  # 0 x inf of a block that hits nothing
+            lo, hi = n[rid] * blk[:, 2:5], n[rid] * blk[:, 5:8]
+            if umbra:
+                good = (blk[:, 1] < lim[rid]) & (np.minimum(lo, hi).sum(1) - nq[rid] > bias[rid])
+            else:
+                good = (blk[:, 0] >= lim[rid]) | (np.maximum(lo, hi).sum(1) - nq[rid] <= 0.0)
+        return good, blk[:, 0]
+
+    def within(rid, lv, bx, by):
+        return ((bx >= x0[rid] >> lv) & (bx <= x1[rid] >> lv) & (by >= y0[rid] >> lv)
+                & (by <= y1[rid] >> lv))
+
+    rid, j = np.repeat(np.arange(m), 9), np.tile(np.arange(9), m)
+    lv = lev[rid]
+    bx, by = (x0[rid] >> lv) + j % 3, (y0[rid] >> lv) + j // 3
+    k = within(rid, lv, bx, by)
+    rid, lv, bx, by = rid[k], lv[k], bx[k], by[k]
+    good, lo = blocks(rid, lv, bx, by)
+    least = np.full(m, np.inf)
+    np.minimum.at(least, rid, lo)
+    rid, lv, bx, by = rid[~good], lv[~good], bx[~good], by[~good]
+    step = np.repeat(np.minimum(lv - PYRAMID_FROM, 2), 16)
+    rid, j = np.repeat(rid, 16), np.tile(np.arange(16), rid.size)
+    lv = np.repeat(lv, 16) - step
+    bx, by = (np.repeat(bx, 16) << step) + j % 4, (np.repeat(by, 16) << step) + j // 4
+    k = (j % 4 < (1 << step)) & (j // 4 < (1 << step)) & within(rid, lv, bx, by)
+    good, _ = blocks(rid[k], lv[k], bx[k], by[k])
+    ok = np.ones(m, bool)
+    ok[rid[k][~good]] = False
+    return ok, least
+
+
+def _clear_across(shadow: ShadowMap, pts, q, n, lim, bias):
+    """_box_test's lit test for receivers whose five points (M, 5, 3) span cube faces: per
+    view, the box of the points' projections (the taps falling in it project inside it)
+    clipped to the map, each clear; none if all five are behind the view's eye, not settled
+    if some are."""
+    res = shadow.resolution
+    ok = np.ones(pts.shape[0], bool)
+    for i, view in enumerate(shadow.views):
+        vp = _transform(np.asarray(view.view, np.float64), pts.reshape(-1, 3)).reshape(-1, 5, 3)
+        front = -vp[..., 2] > 0
+        ok &= front.all(1) | ~front.any(1)
+        sel = np.nonzero(ok & front.all(1))[0]
+        z = -vp[sel, :, 2] * view.tan_half
+        ix = np.clip(np.floor((vp[sel, :, 0] / z + 1.0) * 0.5 * res), -2, res + 1)
+        iy = np.clip(np.floor((1.0 - vp[sel, :, 1] / z) * 0.5 * res), -2, res + 1)
+        hit = ((ix.max(1) >= -1) & (ix.min(1) <= res) & (iy.max(1) >= -1)
+               & (iy.min(1) <= res))
+        sel, ix, iy = sel[hit], ix[hit].astype(int), iy[hit].astype(int)
+        box = [np.clip(a, 0, res - 1) for a in (ix.min(1) - 1, ix.max(1) + 1, iy.min(1) - 1,
+                                               iy.max(1) + 1)]
+        clear, _ = _box_test(shadow, np.full(sel.size, i), *box, q[sel], n[sel], lim[sel],
+                             bias[sel], False)
+        ok[sel] &= clear
+    return ok
+
+
+def _early_outs(shadow: ShadowMap, ortho: bool, p_off, n, u, v, dist, bias, search_s,
+                face_of, todo, vis):
+    """The receivers ``todo`` that the pyramid settles without taps (their vis set; the rest
+    returned), as the taps would: no texel of the search's box can occlude (lit), or every
+    texel of the box of the search and of any filter its blockers allow occludes (umbra)."""
+    c = shadow.light.position
+    t, view = todo, face_of[todo]
+    lim = dist[t] - bias[t]
+    corners = _corners(ortho, c, p_off[t], u[t], v[t], search_s[t])
+    x0, x1, y0, y1, usable, _ = _box(shadow, corners, p_off[t], view)
+    clear, least = _box_test(shadow, view, x0, x1, y0, y1, p_off[t], n[t], lim, bias[t], False)
+    lit = usable & clear
+    if len(shadow.views) > 1 and not ortho:  # a search across cube faces
+        j = np.nonzero(~usable)[0]
+        pts = np.concatenate([corners[j], p_off[t[j], None]], 1)
+        lit[j] = _clear_across(shadow, pts, p_off[t[j]], n[t[j]], lim[j], bias[t[j]])
+    vis[t[lit]] = 1.0
+    k = np.nonzero(usable & ~lit)[0]  # the filter reads no farther than at t_b = least
+    tk = t[k]
+    if ortho:
+        s = np.maximum(search_s[tk], dist[tk] - least[k])
+    else:
+        s = np.minimum(search_s[tk], np.clip(least[k] / dist[tk], 1e-6, 1.0))
+    x0, x1, y0, y1, _, inside = _box(shadow, _corners(ortho, c, p_off[tk], u[tk], v[tk], s),
+                                     p_off[tk], view[k])
+    full, _ = _box_test(shadow, view[k], x0, x1, y0, y1, p_off[tk], n[tk], lim[k], bias[tk],
+                        True)
+    umbra = inside & full
+    vis[tk[umbra]] = 0.0
+    keep = ~lit
+    keep[k[umbra]] = False
+    return t[keep]
+
+
 def _soft(shadow: ShadowMap, src: Source, positions, normals, face_of, p_off, dist, bias,
           texel, hard) -> np.ndarray:
     """Percentage-closer soft shadows of the receivers (see the module docstring)."""
@@ -329,6 +540,8 @@ def _soft(shadow: ShadowMap, src: Source, positions, normals, face_of, p_off, di
     sb = _hash(positions, *HASH_B)
     vis = hard.copy()
     todo = np.nonzero((search_px >= 1.0) & (face_of >= 0))[0]
+    todo = _early_outs(shadow, ortho, p_off, normals, u, v, dist, bias, search_s, face_of,
+                       todo, vis)
     if todo.size == 0:
         return vis
     k = SEARCH_SIDE * SEARCH_SIDE

@@ -103,6 +103,7 @@ class ShadowCache:
     def __init__(self, budget: int = SHADOW_BUDGET):
         self.budget = budget
         self.maps: OrderedDict = OrderedDict()
+        self.sizes: dict = {}  # the bytes counted per key (a map's pyramid may come later)
         self.bytes = 0
         self.evicted = 0  # maps dropped for the budget since the cache was made
         self.tag = None  # what the maps were made for (the geometry key); clear() sets it
@@ -114,15 +115,17 @@ class ShadowCache:
         return shadow
 
     def put(self, key, shadow) -> None:
-        old = self.maps.pop(key, None)
-        self.bytes -= 0 if old is None else old.nbytes
+        self.maps.pop(key, None)
+        self.bytes -= self.sizes.pop(key, 0)
         self.maps[key] = shadow
-        self.bytes += shadow.nbytes
+        self.sizes[key] = shadow.nbytes
+        self.bytes += self.sizes[key]
         while self.bytes > self.budget and len(self.maps) > 1:
-            _, dropped = self.maps.popitem(last=False)
-            self.bytes -= dropped.nbytes
+            dropped, _ = self.maps.popitem(last=False)
+            self.bytes -= self.sizes.pop(dropped)
             self.evicted += 1
 
     def clear(self, tag=None) -> None:
         self.maps.clear()
+        self.sizes.clear()
         self.bytes, self.tag = 0, tag
