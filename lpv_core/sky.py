@@ -207,3 +207,82 @@ def _stacked(maps: list) -> np.ndarray:
             return stack
     _STACK[:] = [(maps, np.stack([m.stacked()[0] for m in maps])), *_STACK[:1]]
     return _STACK[0][1]
+
+
+# An image's sun (split_sun): the region around the map's brightest texel is a sun when it fits
+# in a cone of SUN_MAX_DIAMETER and carries SUN_MIN_SHARE of the map's light. 8 deg: a sun
+# straddling 2 x 2 texels of the coarsest map (a 128 x 64 bake: a 6.4 deg cone) fits, with
+# room for a lens' glare; under half the pixels' direction spacing (~20 deg) it undoes.
+SUN_MAX_DIAMETER = float(np.radians(8.0))
+# A lamp costs what a World direction costs (a shadow map, an RSM): worth it when it carries
+# more than an average direction's share of the light, 1 / DIRECTIONS.
+SUN_MIN_SHARE = 1.0 / DIRECTIONS
+LUMA = np.array([0.2126, 0.7152, 0.0722])  # Rec. 709 luminance (Blender's scene linear)
+
+
+def split_sun(radiance: np.ndarray) -> tuple[np.ndarray, tuple | None]:
+    """(map, sun or None): an equirect ``radiance`` map (H, W, 3, bottom-first) split into the map
+    with its sun replaced by the sun's surroundings' level and the sun as (rgb irradiance W/m^2
+    normal to it, unit direction, angular diameter); map + sun keep the map's light exactly.
+    The sun is the component of {luminance > t} around the brightest texel for the lowest t
+    that keeps it within SUN_MAX_DIAMETER's cone, if it carries SUN_MIN_SHARE (docs/decisions.md)."""
+    import heapq
+
+    r = np.maximum(np.nan_to_num(np.asarray(radiance, np.float32), nan=0.0, posinf=0.0), 0.0)
+    h, w = r.shape[:2]
+    dirs, sa = map_directions(h, w)
+    y, sa_f = (r.reshape(-1, 3) @ LUMA), sa.reshape(-1)
+    total = float(y @ sa_f)
+    bound = 2.0 * np.pi * (1.0 - np.cos(SUN_MAX_DIAMETER / 2.0))
+    start = int(np.argmax(y))
+    if not total > 0.0 or sa_f[start] > bound:
+        return r, None
+    # Priority flood from the peak: the texels popped before the first one below all earlier
+    # ones form the component of {luminance > that one's}; keep the largest within the bound.
+    heap, seen, order = [(-y[start], start)], {start}, []
+    omega, lowest, cut = 0.0, np.inf, 0
+    while heap:
+        v, i = heapq.heappop(heap)
+        if -v < lowest:
+            cut, lowest = len(order), -v
+        if omega + sa_f[i] > bound:
+            break
+        order.append(i)
+        omega += sa_f[i]
+        for j in _neighbours(i, h, w):
+            if j not in seen:
+                seen.add(j)
+                heapq.heappush(heap, (-y[j], j))
+    region = np.array(order[:cut], np.int64)
+    if not len(region):
+        return r, None
+    inside = set(order[:cut])
+    ring = np.array(sorted({j for i in order[:cut] for j in _neighbours(i, h, w)} - inside))
+    flat = r.reshape(-1, 3)
+    level = (flat[ring] * sa_f[ring, None]).sum(0) / sa_f[ring].sum()
+    level = np.minimum(level, flat[region].min(0)).astype(np.float32)  # no negative channel
+    excess = (flat[region].astype(np.float64) - level) * sa_f[region, None]
+    e = excess.sum(0)
+    lum = excess @ LUMA
+    if not float(e @ LUMA) >= SUN_MIN_SHARE * total:
+        return r, None
+    d = lum @ dirs.reshape(-1, 3)[region]
+    # diameter of the uniform disc with the region's light at its peak radiance (excess)
+    peak = float((lum / sa_f[region]).max())
+    cone = min(float(e @ LUMA) / peak, bound) if peak > 0 else bound
+    out = r.copy()
+    out.reshape(-1, 3)[region] = level
+    return out, (e.astype(np.float32), d / np.linalg.norm(d),
+                 float(2.0 * np.arccos(1.0 - cone / (2.0 * np.pi))))
+
+
+def _neighbours(i: int, h: int, w: int):
+    """Flat indices of texel ``i``'s 8 neighbours in an (h, w) equirect map: columns wrap, the
+    top and bottom rows also touch the texel across the pole."""
+    row, col = divmod(int(i), w)
+    for rr in (row - 1, row, row + 1):
+        if 0 <= rr < h:
+            for cc in (col - 1, col, col + 1):
+                yield rr * w + cc % w
+    if row in (0, h - 1):
+        yield row * w + (col + w // 2) % w

@@ -6,7 +6,9 @@ image's pixels in Python; everything else (the Sky Texture of every type, other 
 is rendered by Cycles itself through an equirectangular camera in a temporary scene, cached by
 a digest of the node tree's values in memory and on disk. A Sky Texture's sun disc is far
 smaller than a map texel: it is taken out of the map and returned as a SUN light whose
-irradiance is measured on Cycles' own render of the disc.
+irradiance is measured on Cycles' own render of the disc; an image's (or other graph's) sun,
+a compact very bright region of the map, is split off the map as a SUN light too
+(lpv_core sky.split_sun).
 """
 
 from __future__ import annotations
@@ -61,11 +63,15 @@ def world_from_blender(world, scene) -> tuple:
         return core.scene.World(world.name, gi_intensity=gi, enabled=False), [], []
     notes: list[str] = []
     radiance, sun = _radiance(world, scene, notes)
+    radiance = np.nan_to_num(np.asarray(radiance, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    radiance = np.maximum(radiance, 0.0)
     lights = []
     if sun is not None:
         lights.append(_sun_light(world.name, *sun, gi))
-    radiance = np.nan_to_num(np.asarray(radiance, np.float32), nan=0.0, posinf=0.0, neginf=0.0)
-    radiance = np.maximum(radiance, 0.0)
+        e = float(np.dot(sun[0], core.sky.LUMA))
+        notes.append(f"World '{world.name}': its sun ({math.degrees(sun[2]):.2f} deg across, "
+                     f"{e / max(e + _light(radiance), 1e-30):.0%} of its light) is the SUN lamp "
+                     f"'{lights[-1].name}', its texels filled with the level around them")
     if not radiance.max() > 0 and not lights:
         return None, notes, []
     digest = hashlib.sha256(radiance.tobytes() + str(radiance.shape).encode()).hexdigest()
@@ -97,8 +103,16 @@ def _radiance(world, scene, notes: list[str]):
                 and feed[1].name == "Color":
             env = environment_map(world, feed[0], notes)
             if env is not None:
-                return env * np.float32(strength), None
+                sun = env[1] if strength > 0 else None
+                return env[0] * np.float32(strength), None if sun is None else (
+                    sun[0] * np.float32(strength), *sun[1:])
     return _baked(world, scene, notes)
+
+
+def _light(radiance: np.ndarray) -> float:
+    """The map's luminance integrated over the sphere (sum of radiance x texel solid angle)."""
+    r = np.asarray(radiance, np.float64).reshape(np.shape(radiance)[0], -1, 3)
+    return float(((r @ core.sky.LUMA) * core.sky.map_directions(*r.shape[:2])[1]).sum())
 
 
 def _source(socket):
@@ -121,10 +135,10 @@ def _source(socket):
 # ------------------------------------------------------------------------- environment image
 
 
-def environment_map(world, node, notes: list[str]) -> np.ndarray | None:
-    """The Environment Texture's radiance map (H, W, 3), bottom-first, at most MAP_BUDGET,
-    in the World's equirectangular convention; None where only Cycles can evaluate its input
-    (then the caller bakes)."""
+def environment_map(world, node, notes: list[str]) -> tuple | None:
+    """(radiance map (H, W, 3), bottom-first, at most MAP_BUDGET, in the World's equirect
+    convention and directions, its sun split off; the sun or None) of an Environment Texture;
+    None where only Cycles can evaluate its input (then the caller bakes)."""
     mapping = None
     vec = _source(node.inputs["Vector"])
     if vec is not None:
@@ -144,12 +158,12 @@ def environment_map(world, node, notes: list[str]) -> np.ndarray | None:
         notes.append(f"World '{world.name}': Environment Texture '{node.name}' has no image "
                      f"({'none set' if image is None else image.filepath}); lit magenta, "
                      "as Cycles renders it")
-        return np.array(MISSING, np.float32).reshape(1, 1, 3)
+        return np.array(MISSING, np.float32).reshape(1, 1, 3), None
     key = "|".join(map(str, (image.name, image.filepath, tuple(image.size), image.is_float,
                              image.colorspace_settings.name, node.projection,
                              _values(mapping) if mapping else "")))
     if key in _MEMORY:
-        return _MEMORY[key][0]
+        return _MEMORY[key]
     pixels = _image_pixels(image, world, notes)
     if mapping is None and node.projection == "EQUIRECTANGULAR":
         out = _area_resample(pixels, MAP_BUDGET)
@@ -158,8 +172,8 @@ def environment_map(world, node, notes: list[str]) -> np.ndarray | None:
         w = min(MAP_BUDGET[0], max(8, pixels.shape[1]))
         out = _lookup(src, _mapped(_directions(w, max(4, w // 2)), mapping, world, notes),
                       node.projection)
-    _MEMORY[key] = (out, None)
-    return out
+    _MEMORY[key] = core.sky.split_sun(out)  # on the final, world-space map
+    return _MEMORY[key]
 
 
 def _load(image) -> bool:
@@ -314,7 +328,8 @@ def world_digest(world, scene) -> str:
     size and Blender's version."""
     return hashlib.sha256("|".join(map(str, (
         tree_digest(world.node_tree), scene.frame_current, BAKE_SIZE, BAKE_SAMPLES,
-        SUN_PIXELS, SUN_FOV, bpy.app.version))).encode()).hexdigest()[:32]
+        SUN_PIXELS, SUN_FOV, core.sky.SUN_MAX_DIAMETER, core.sky.SUN_MIN_SHARE,
+        bpy.app.version))).encode()).hexdigest()[:32]
 
 
 def cache_dir() -> str:
@@ -354,6 +369,8 @@ def _baked(world, scene, notes: list[str]):
         notes.append(f"World '{world.name}': not baked ({exc}); lit as a uniform world of its "
                      f"viewport colour {tuple(round(c, 3) for c in world.color[:3])}")
         return np.array(world.color[:3], np.float32).reshape(1, 1, 3), None
+    if result[1] is None:  # no Sky Texture disc: the graph's own sun, if any (an image's)
+        result = core.sky.split_sun(result[0])
     _MEMORY[digest] = result
     sun = np.zeros(0) if result[1] is None else np.concatenate(
         [result[1][0], result[1][1], [result[1][2]]])
