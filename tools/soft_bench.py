@@ -6,7 +6,9 @@ maps) and the outdoor scene.
     python -m tools.soft_bench [--repeat 7] [--before REV] [--json]
 
 ``--before REV`` times the code of that git revision too (git archive into a temporary
-folder), the two trees interleaved run by run in one process each; medians are printed.
+folder), the two trees interleaved run by run in one process each; medians are printed, of
+the wall time and of the CPU time of all threads (" cpu": the work, less sensitive to a shared
+machine's load).
 """
 
 from __future__ import annotations
@@ -69,13 +71,15 @@ def child(repeat: int) -> dict:
             _, light, shadow, samples = _setup(case, soft)
             for pos, nrm in samples:  # warm-up: compilation, the map's caches
                 direct.irradiance(light, pos, nrm, shadow)
-            times = []
+            wall, cpu = [], []
             for _ in range(repeat):
-                t0 = time.perf_counter()
+                t0, c0 = time.perf_counter(), time.process_time()
                 for pos, nrm in samples:
                     direct.irradiance(light, pos, nrm, shadow)
-                times.append((time.perf_counter() - t0) * 1000.0)
-            out[f"{case}/{'soft' if soft else 'hard'}"] = times
+                wall.append((time.perf_counter() - t0) * 1000.0)
+                cpu.append((time.process_time() - c0) * 1000.0)
+            name = f"{case}/{'soft' if soft else 'hard'}"
+            out[name], out[name + " cpu"] = wall, cpu
     return out
 
 
@@ -114,9 +118,9 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(med, indent=1))
         return 0
     keys = list(next(iter(med.values())))
-    print("case".ljust(14) + "".join(n.rjust(10) for n in med))
+    print("case".ljust(18) + "".join(n.rjust(10) for n in med))
     for k in keys:
-        print(k.ljust(14) + "".join(f"{med[n][k]:10.1f}" for n in med))
+        print(k.ljust(18) + "".join(f"{med[n][k]:10.1f}" for n in med))
     return 0
 
 

@@ -15,7 +15,7 @@ from ..scene.model import Light
 
 KINDS = {"POINT": 0, "SPOT": 1, "AREA": 2, "SUN": 3}  # the light types the kernel lights
 # render.direct's constants (the stage owns them; a kernel never imports its stage)
-SEARCH_SIDE, FILTER_SIDE, SEARCH_AT, PYRAMID_FROM = 6, 6, 0.5, 2
+SEARCH_SIDE, FILTER_SIDE, SEARCH_AT, PYRAMID_FROM = 6, 6, 0.5, 2  # REFINE = 2: _sub_blocks
 HARD, SPHERE, RECTANGLE, ELLIPSE, CONE = 0, 1, 2, 3, 4
 HASH_A = (12.9898, 78.233, 37.719, 43758.5453)
 HASH_B = (39.3468, 11.135, 83.155, 24634.6345)
@@ -76,18 +76,21 @@ def irradiance(light: Light, positions: np.ndarray, normals: np.ndarray,
     args = (kind, np.asarray(light.position, np.float64), np.asarray(light.direction, np.float64),
             float(light.power), cos_half, smooth, polys, radiance, tan_half, norm,
             *_shadow_args(shadow, src, light), pos, nrm, out)
-    _in_parts(lambda sl: _direct_kernel(*args, sl.start, sl.stop), pos.shape[0])
+    soft = shadow is not None and src is not None and src.kind != HARD
+    _in_parts(lambda sl: _direct_kernel(*args, sl.start, sl.stop), pos.shape[0],
+              8 if soft else 1)
     return out[:, None] * color
 
 
-def _in_parts(run, n: int, smallest: int = 4096) -> None:
-    """run(slice) over 0..n in 8 parts per pool thread (pool.in_halves' rule otherwise): soft
-    shadows make some rows of the frame many times dearer than others (halves left a thread
-    idle: the two halves of the Cornell box's spot light frame took 1.7 and 20 ms)."""
+def _in_parts(run, n: int, parts: int = 8, smallest: int = 4096) -> None:
+    """run(slice) over 0..n in ``parts`` parts per pool thread (pool.in_halves' rule
+    otherwise): soft shadows make some rows of the frame many times dearer than others
+    (halves left a thread idle: the two halves of the Cornell box's spot light frame took 1.7
+    and 20 ms); a hard light takes 1 (a kernel call costs ~30 us)."""
     if n < smallest:
         run(slice(0, n))
         return
-    edges = np.linspace(0, n, 8 * pool.workers() + 1).astype(np.int64)
+    edges = np.linspace(0, n, parts * pool.workers() + 1).astype(np.int64)
     for _ in pool.executor().map(run, [slice(a, b) for a, b in itertools.pairwise(edges)]):
         pass
 
@@ -100,7 +103,8 @@ def visibility(shadow, src, positions: np.ndarray, normals: np.ndarray) -> np.nd
     out = np.empty(pos.shape[0], np.float64)
     args = (np.asarray(light.position, np.float64), *_shadow_args(shadow, src, light),
             pos, nrm, out)
-    _in_parts(lambda sl: _visibility_kernel(*args, sl.start, sl.stop), pos.shape[0])
+    _in_parts(lambda sl: _visibility_kernel(*args, sl.start, sl.stop), pos.shape[0],
+              8 if src.kind != HARD else 1)
     return out
 
 
@@ -363,12 +367,28 @@ def _texel(lp, mats, ortho, scale, face_view, single, res, x, y, z):  # pragma: 
 def _lookup(lp, mats, ortho, scale, depths, face_view, single, res, x, y, z,
             qx, qy, qz, nx, ny, nz, dist, bias):  # pragma: no cover
     """direct._lookup of one tap point: (depth, occludes)."""
-    view, ix, iy, front, inside = _texel(lp, mats, ortho, scale, face_view, single, res, x, y,
-                                         z)
-    if view < 0 or not (inside if single else front):
+    view = _view_of(lp, face_view, single, x, y, z)
+    if view < 0:
         return np.inf, False
     mat = mats[view]
     s = scale[view]
+    vx = x * mat[0, 0] + y * mat[0, 1] + z * mat[0, 2] + mat[0, 3]
+    vy = x * mat[1, 0] + y * mat[1, 1] + z * mat[1, 2] + mat[1, 3]
+    vz = x * mat[2, 0] + y * mat[2, 1] + z * mat[2, 2] + mat[2, 3]
+    ok = True
+    if ortho[view]:
+        inv = 1.0 / s
+    else:
+        zz = -vz
+        ok = zz > 0
+        inv = 1.0 / (zz * s) if ok else 1.0 / s
+    u, v = vx * inv, vy * inv
+    if single:
+        ok = ok and abs(u) <= 1.0 and abs(v) <= 1.0
+    if not ok:
+        return np.inf, False
+    ix = int(min(max(np.floor((u + 1.0) * 0.5 * res), 0.0), res - 1.0))
+    iy = int(min(max(np.floor((1.0 - v) * 0.5 * res), 0.0), res - 1.0))
     d = np.float64(depths[view, iy, ix])
     if not d < dist - bias:
         return d, False
@@ -490,14 +510,40 @@ def _box_test(pyr, offs, sizes, vw, x0, x1, y0, y1, qx, qy, qz, nx, ny, nz, lim,
             least = min(least, lo)
             if good or not ok:
                 continue
-            st = min(lev - PYRAMID_FROM, 2)
-            lv = lev - st
-            for cy in range(max(by << st, y0 >> lv), min((by + 1) << st, (y1 >> lv) + 1)):
-                for cx in range(max(bx << st, x0 >> lv), min((bx + 1) << st, (x1 >> lv) + 1)):
-                    if ok and not _block(pyr, offs, sizes, vw, lv, cx, cy, nx, ny, nz, nq, lim,
-                                         bias, umbra)[0]:
-                        ok = False
+            ok = _sub_blocks(pyr, offs, sizes, vw, lev, bx, by, x0, x1, y0, y1, nx, ny, nz, nq,
+                             lim, bias, umbra, True)
     return ok, least
+
+
+@jit.kernel
+def _sub_blocks(pyr, offs, sizes, vw, lev, bx, by, x0, x1, y0, y1, nx, ny, nz, nq, lim, bias,
+                umbra, deeper):  # pragma: no cover
+    """Whether a failing block's sub-blocks two levels down within the box all pass
+    (direct._box_test's refinement; ``deeper``: a failing one refined once more)."""
+    st = min(lev - PYRAMID_FROM, 2)
+    lv = lev - st
+    for cy in range(max(by << st, y0 >> lv), min((by + 1) << st, (y1 >> lv) + 1)):
+        for cx in range(max(bx << st, x0 >> lv), min((bx + 1) << st, (x1 >> lv) + 1)):
+            if _block(pyr, offs, sizes, vw, lv, cx, cy, nx, ny, nz, nq, lim, bias, umbra)[0]:
+                continue
+            if not deeper or lv == PYRAMID_FROM or not _sub_blocks_last(
+                    pyr, offs, sizes, vw, lv, cx, cy, x0, x1, y0, y1, nx, ny, nz, nq, lim, bias,
+                    umbra):
+                return False
+    return True
+
+
+@jit.kernel
+def _sub_blocks_last(pyr, offs, sizes, vw, lev, bx, by, x0, x1, y0, y1, nx, ny, nz, nq, lim,
+                     bias, umbra):  # pragma: no cover
+    """_sub_blocks without a further refinement."""
+    st = min(lev - PYRAMID_FROM, 2)
+    lv = lev - st
+    for cy in range(max(by << st, y0 >> lv), min((by + 1) << st, (y1 >> lv) + 1)):
+        for cx in range(max(bx << st, x0 >> lv), min((bx + 1) << st, (x1 >> lv) + 1)):
+            if not _block(pyr, offs, sizes, vw, lv, cx, cy, nx, ny, nz, nq, lim, bias, umbra)[0]:
+                return False
+    return True
 
 
 @jit.kernel
@@ -532,13 +578,32 @@ def _soft(lp, mats, ortho, scale, depths, face_view, single, res, skind, su, sv,
         extent = srad
     if sun:
         s = max(dist - near, 0.0)
+        if s * srad >= texel:  # direct._soft: no farther than the nearest blocker's reach
+            x0, x1, y0, y1, _, _ = _box(lp, mats, ortho, scale, face_view, single, res, view,
+                                        sun, ux, uy, uz, vx, vy, vz, s, qx, qy, qz)
+            least = _box_test(pyr, offs, sizes, view, x0, x1, y0, y1, qx, qy, qz, nx, ny, nz,
+                              dist - bias, bias, False)[1]
+            s = min(s, max(dist - least, 0.0))
         search_px = s * srad / texel
     else:
         s = SEARCH_AT
         search_px = extent * (1.0 - SEARCH_AT) / (SEARCH_AT * dist) / texel
     if not search_px >= 1.0:
         return hard
-    # direct._early_outs: lit or umbra from the pyramid, as the taps would find
+    settled = _settle(lp, mats, ortho, scale, face_view, single, res, pyr, offs, sizes, view,
+                      sun, ux, uy, uz, vx, vy, vz, s, qx, qy, qz, nx, ny, nz, dist, bias)
+    if settled >= 0.0:
+        return settled
+    return _pcss(lp, mats, ortho, scale, depths, face_view, single, res, sun, round_, srad,
+                 extent, hashes, px, py, pz, ux, uy, uz, vx, vy, vz, s, qx, qy, qz, nx, ny, nz,
+                 dist, bias, texel, hard)
+
+
+@jit.kernel
+def _settle(lp, mats, ortho, scale, face_view, single, res, pyr, offs, sizes, view, sun, ux, uy,
+            uz, vx, vy, vz, s, qx, qy, qz, nx, ny, nz, dist, bias):  # pragma: no cover
+    """direct._early_outs of one receiver: 1 lit, 0 umbra from the pyramid, as the taps would
+    find; -1 not settled."""
     lim = dist - bias
     x0, x1, y0, y1, usable, _ = _box(lp, mats, ortho, scale, face_view, single, res, view, sun,
                                      ux, uy, uz, vx, vy, vz, s, qx, qy, qz)
@@ -556,6 +621,14 @@ def _soft(lp, mats, ortho, scale, depths, face_view, single, res, skind, su, sv,
     elif not single and _clear_across(lp, mats, scale, res, pyr, offs, sizes, ux, uy, uz, vx,
                                       vy, vz, s, qx, qy, qz, nx, ny, nz, lim, bias):
         return 1.0
+    return -1.0
+
+
+@jit.kernel
+def _pcss(lp, mats, ortho, scale, depths, face_view, single, res, sun, round_, srad, extent,
+          hashes, px, py, pz, ux, uy, uz, vx, vy, vz, s, qx, qy, qz, nx, ny, nz, dist, bias,
+          texel, hard):  # pragma: no cover
+    """direct._soft's blocker search and filter of one receiver."""
     sa = _frac_hash(px, py, pz, hashes, 0)
     sb = _frac_hash(px, py, pz, hashes, 4)
     count = 0

@@ -28,6 +28,7 @@ SEARCH_SIDE = 6  # blocker search: 6 x 6 strata over the light, plus the receive
 FILTER_SIDE = 6  # percentage-closer taps: 6 x 6 strata over the light
 SEARCH_AT = 0.5  # the search looks for blockers over the half of the way nearer the receiver
 PYRAMID_FROM = 2  # the early outs' finest blocks: 4 x 4 texels (8 channels of 1/12 the map)
+REFINE = 2  # a failing block is read again as its sub-blocks 2 and then 4 levels down
 # Source kinds (Source.kind), shared with kernels/direct.py
 HARD, SPHERE, RECTANGLE, ELLIPSE, CONE = 0, 1, 2, 3, 4
 
@@ -418,8 +419,8 @@ def _box_test(shadow: ShadowMap, view, x0, x1, y0, y1, q, n, lim, bias, umbra: b
     least ``lim`` or its occluders' box on or behind the plane through q, normal n: lit) or,
     with ``umbra``, whether every one does (depths below ``lim``, in front of the plane by
     ``bias``: _lookup's test), over the blocks of the level where the box covers at most
-    3 x 3, a block that fails read again as its sub-blocks two levels down (at most 4 x 4);
-    and the least depth over the first blocks."""
+    3 x 3, a block that fails read again as its sub-blocks two levels down (at most 4 x 4),
+    REFINE times; and the least depth over the first blocks."""
     pyr, offs, sizes = shadow.pyramid()
     m = view.size
     lev = np.full(m, PYRAMID_FROM)
@@ -449,15 +450,17 @@ def _box_test(shadow: ShadowMap, view, x0, x1, y0, y1, q, n, lim, bias, umbra: b
     good, lo = blocks(rid, lv, bx, by)
     least = np.full(m, np.inf)
     np.minimum.at(least, rid, lo)
-    rid, lv, bx, by = rid[~good], lv[~good], bx[~good], by[~good]
-    step = np.repeat(np.minimum(lv - PYRAMID_FROM, 2), 16)
-    rid, j = np.repeat(rid, 16), np.tile(np.arange(16), rid.size)
-    lv = np.repeat(lv, 16) - step
-    bx, by = (np.repeat(bx, 16) << step) + j % 4, (np.repeat(by, 16) << step) + j // 4
-    k = (j % 4 < (1 << step)) & (j // 4 < (1 << step)) & within(rid, lv, bx, by)
-    good, _ = blocks(rid[k], lv[k], bx[k], by[k])
+    for _ in range(REFINE):
+        rid, lv, bx, by = rid[~good], lv[~good], bx[~good], by[~good]
+        step = np.repeat(np.minimum(lv - PYRAMID_FROM, 2), 16)
+        rid, j = np.repeat(rid, 16), np.tile(np.arange(16), rid.size)
+        lv = np.repeat(lv, 16) - step
+        bx, by = (np.repeat(bx, 16) << step) + j % 4, (np.repeat(by, 16) << step) + j // 4
+        k = (j % 4 < (1 << step)) & (j // 4 < (1 << step)) & within(rid, lv, bx, by)
+        rid, lv, bx, by = rid[k], lv[k], bx[k], by[k]
+        good, _ = blocks(rid, lv, bx, by)
     ok = np.ones(m, bool)
-    ok[rid[k][~good]] = False
+    ok[rid[~good]] = False
     return ok, least
 
 
@@ -529,9 +532,14 @@ def _soft(shadow: ShadowMap, src: Source, positions, normals, face_of, p_off, di
     c = light.position
     m = positions.shape[0]
     u, v, extent = _light_frame(shadow, src, p_off, dist)
-    if ortho:
-        near = _ortho_near(shadow.views[0])
-        search_s = np.maximum(dist - near, 0.0)
+    if ortho:  # blockers lie between the near plane and, within its reach, the nearest
+        search_s = np.maximum(dist - _ortho_near(shadow.views[0]), 0.0)
+        t = np.nonzero((search_s * src.radius >= texel) & (face_of >= 0))[0]
+        x0, x1, y0, y1, _, _ = _box(shadow, _corners(True, c, p_off[t], u[t], v[t],
+                                                     search_s[t]), p_off[t], face_of[t])
+        _, least = _box_test(shadow, face_of[t], x0, x1, y0, y1, p_off[t], normals[t],
+                             dist[t] - bias[t], bias[t], False)
+        search_s[t] = np.minimum(search_s[t], np.maximum(dist[t] - least, 0.0))
         search_px = search_s * src.radius / texel
     else:
         search_s = np.full(m, SEARCH_AT)
