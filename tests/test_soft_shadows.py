@@ -249,3 +249,58 @@ def test_a_box_side_under_a_wide_panel_is_not_shaded_by_its_own_box():
         e = direct.irradiance(light, pos, nrm)[:, 0]
     assert (e > 0).all()  # the panel's part beyond x = 0.5 lights the side
     assert vis.min() == 1.0
+
+
+@pytest.mark.parametrize("kind", ["POINT", "SPOT", "SUN", "AREA"])
+def test_pyramid_early_outs_are_what_the_taps_give(kind, monkeypatch):
+    """The depth pyramid settles receivers (lit: no texel of the search region can occlude;
+    umbra: every texel of the search's and any filter's region does) with exactly the
+    visibility the blocker search and filter give; most receivers read no taps (the cost)."""
+    scene = cornell_box(kind, (16, 16), GISettings())
+    light = scene.lights[0]
+    light.radius, light.angle = 0.1, np.radians(0.526)  # Blender's defaults
+    eng = engine.Engine()
+    bounds = eng.upload(scene, engine.Stats())
+    shadow = eng.shadow_map(scene, light, bounds, 512)
+    rng = np.random.default_rng(11)
+    tri = scene.positions.reshape(-1, 3, 3)
+    pick = rng.integers(0, tri.shape[0], 20000)
+    a, b = rng.uniform(size=(2, 20000, 1))
+    flip = a + b > 1
+    a, b = np.where(flip, 1 - a, a), np.where(flip, 1 - b, b)
+    t = tri[pick]
+    pos = t[:, 0] + a * (t[:, 1] - t[:, 0]) + b * (t[:, 2] - t[:, 0])
+    nrm = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    lit = direct.irradiance(light, pos, nrm)[:, 0] > 0
+    pos, nrm = pos[lit], nrm[lit]
+    tapped = []
+    early = direct._early_outs
+
+    def counted(*args):
+        left = early(*args)
+        tapped.append(left.size)
+        return left
+
+    with jit.disabled():
+        monkeypatch.setattr(direct, "_early_outs", counted)
+        got = direct.visibility(shadow, pos, nrm)
+        monkeypatch.setattr(direct, "_early_outs", lambda *args: args[-2])
+        want = direct.visibility(shadow, pos, nrm)
+    np.testing.assert_array_equal(got, want)
+    assert ((want > 0) & (want < 1)).mean() > 0.005  # penumbrae are there
+    assert sum(tapped) < 0.5 * pos.shape[0]  # most receivers read no taps
+
+
+def test_compiled_pyramid_blocks_are_the_numpy_ones():
+    if not jit.enabled():
+        pytest.skip("the kernels are off")
+    scene = cornell_box("POINT", (16, 16), GISettings())
+    eng = engine.Engine()
+    bounds = eng.upload(scene, engine.Stats())
+    shadow = eng.shadow_map(scene, scene.lights[0], bounds, 250)  # not a multiple of 4
+    eye = np.asarray(scene.lights[0].position, np.float64)
+    for view, depth in zip(shadow.views, shadow.stacked()):
+        want = direct._blocks(view, depth, eye)
+        got = direct._compiled.pyramid_blocks(view, depth, eye, 1 << direct.PYRAMID_FROM)
+        np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)

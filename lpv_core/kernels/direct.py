@@ -108,6 +108,53 @@ def visibility(shadow, src, positions: np.ndarray, normals: np.ndarray) -> np.nd
     return out
 
 
+def pyramid_blocks(view, depth: np.ndarray, eye: np.ndarray, b: int) -> np.ndarray:
+    """direct._blocks (n, n, 8) of one view by ``_blocks_kernel``, rows of blocks on the pool's
+    threads."""
+    res = depth.shape[0]
+    out = np.empty((-(-res // b), -(-res // b), 8), np.float64)
+    args = (np.asarray(view.view, np.float64), bool(view.ortho),
+            float(view.half_extent if view.ortho else view.tan_half), eye,
+            np.ascontiguousarray(depth, np.float32), b, out)
+    _in_parts(lambda sl: _blocks_kernel(*args, sl.start, sl.stop), out.shape[0], 1, 1)
+    return out
+
+
+@jit.kernel
+def _blocks_kernel(mat, ortho, sc, eye, depth, b, out, r0, r1):  # pragma: no cover
+    """direct._blocks' rows r0..r1-1 of blocks."""
+    res = depth.shape[0]
+    for by in range(r0, r1):
+        for bx in range(out.shape[1]):
+            dmin, dmax = np.inf, -np.inf
+            l0 = l1 = l2 = np.inf
+            h0 = h1 = h2 = -np.inf
+            for iy in range(by * b, min(by * b + b, res)):
+                vc = 1.0 - (iy + 0.5) / res * 2.0
+                for ix in range(bx * b, min(bx * b + b, res)):
+                    d = np.float64(depth[iy, ix])
+                    dmin, dmax = min(dmin, d), max(dmax, d)
+                    if not d < np.inf:
+                        continue
+                    uc = (ix + 0.5) / res * 2.0 - 1.0
+                    if ortho:
+                        a0, a1, a2 = uc * sc - mat[0, 3], vc * sc - mat[1, 3], -mat[2, 3]
+                        x = a0 * mat[0, 0] + a1 * mat[1, 0] + a2 * mat[2, 0] - d * mat[2, 0]
+                        y = a0 * mat[0, 1] + a1 * mat[1, 1] + a2 * mat[2, 1] - d * mat[2, 1]
+                        z = a0 * mat[0, 2] + a1 * mat[1, 2] + a2 * mat[2, 2] - d * mat[2, 2]
+                    else:
+                        fx = uc * sc * mat[0, 0] + vc * sc * mat[1, 0] - mat[2, 0]
+                        fy = uc * sc * mat[0, 1] + vc * sc * mat[1, 1] - mat[2, 1]
+                        fz = uc * sc * mat[0, 2] + vc * sc * mat[1, 2] - mat[2, 2]
+                        ln = np.sqrt(fx * fx + fy * fy + fz * fz)
+                        x, y, z = (eye[0] + d * (fx / ln), eye[1] + d * (fy / ln),
+                                   eye[2] + d * (fz / ln))
+                    l0, l1, l2 = min(l0, x), min(l1, y), min(l2, z)
+                    h0, h1, h2 = max(h0, x), max(h1, y), max(h2, z)
+            o = out[by, bx]
+            o[0], o[1], o[2], o[3], o[4], o[5], o[6], o[7] = dmin, dmax, l0, l1, l2, h0, h1, h2
+
+
 @jit.kernel
 def _edge_term(ax, ay, az, bx, by, bz, nx, ny, nz):  # pragma: no cover
     """lights._edge_term of one edge."""

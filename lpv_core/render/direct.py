@@ -58,44 +58,24 @@ class ShadowMap:
         outward) of the occluders' points (texels that hit nothing left out). Built once per
         map (2/3 of its bytes more); the soft shadows' early outs read it."""
         if self._pyramid is None:
-            res, b = self.resolution, 1 << PYRAMID_FROM
-            n0 = -(-res // b)
-            pad = ((0, n0 * b - res), (0, n0 * b - res))
-            uc = (np.arange(res) + 0.5) / res * 2.0 - 1.0
-            gu, gv = np.meshgrid(uc, -uc)
+            res = self.resolution
             views = []
             for view, depth in zip(self.views, self.stacked()):
-                m = np.asarray(view.view, np.float64)
-                rot = m[:3, :3]
-                hit = np.isfinite(depth)[..., None]
-                d = np.where(hit, depth.astype(np.float64)[..., None], 0.0)
-                if view.ortho:  # the texel centre's ray from the near plane (_lookup's)
-                    sc = view.half_extent
-                    y0 = ((gu * sc - m[0, 3])[..., None] * rot[0]
-                          + (gv * sc - m[1, 3])[..., None] * rot[1] - m[2, 3] * rot[2])
-                    pts = y0 - d * rot[2]
-                else:
-                    sc = view.tan_half
-                    f = (gu * sc)[..., None] * rot[0] + (gv * sc)[..., None] * rot[1] - rot[2]
-                    f /= np.sqrt(np.einsum("ijk,ijk->ij", f, f))[..., None]
-                    pts = np.asarray(self.light.position, np.float64) + d * f
-                lo = np.where(hit, pts, np.inf)
-                hi = np.where(hit, pts, -np.inf)
-                chans = [(depth, np.inf, np.minimum), (depth, -np.inf, np.maximum)]
-                chans += [(lo[..., i], np.inf, np.minimum) for i in range(3)]
-                chans += [(hi[..., i], -np.inf, np.maximum) for i in range(3)]
+                eye = np.asarray(self.light.position, np.float64)
+                base = (_compiled.pyramid_blocks(view, depth, eye, 1 << PYRAMID_FROM)
+                        if jit.enabled() else _blocks(view, depth, eye))
                 levels = []
-                for c, fill, op in chans:
-                    c = np.pad(c, pad, constant_values=fill).reshape(n0, b, n0, b)
-                    c = op.reduce(op.reduce(c, axis=3), axis=1)
+                for ch in range(8):
+                    fill, op = (np.inf, np.minimum) if ch in (0, 2, 3, 4) else (-np.inf,
+                                                                               np.maximum)
+                    c = base[..., ch]
                     c32 = c.astype(np.float32)  # outward: a bound stays a bound in float32
                     c32 = np.where(op(c32, c) != c32, np.nextafter(c32, np.float32(fill)), c32)
                     levels.append([c32])
                     while c32.shape[0] > 1:
-                        h = (c32.shape[0] + 1) // 2
                         if c32.shape[0] % 2:
                             c32 = np.pad(c32, ((0, 1), (0, 1)), constant_values=fill)
-                        c32 = op.reduce(op.reduce(c32.reshape(h, 2, h, 2), axis=3), axis=1)
+                        c32 = _halve(c32, op)
                         levels[-1].append(c32)
                 views.append(np.stack([np.concatenate([lv.ravel() for lv in ch])
                                        for ch in levels], -1))  # a block's 8: one cache line
@@ -112,6 +92,48 @@ class ShadowMap:
         render/shadows.py)."""
         extra = 0 if self._pyramid is None else self._pyramid[0].nbytes
         return int(self.stacked().nbytes) + int(extra)
+
+
+def _blocks(view, depth: np.ndarray, eye: np.ndarray) -> np.ndarray:
+    """(n, n, 8) float64 of ShadowMap.pyramid's finest level: per block of 2^PYRAMID_FROM
+    texels a side the least and greatest depth and the box (min xyz, max xyz) of the points
+    the texel centres' rays (_lookup's) hit."""
+    res, b = depth.shape[0], 1 << PYRAMID_FROM
+    n0 = -(-res // b)
+    pad = ((0, n0 * b - res), (0, n0 * b - res))
+    uc = (np.arange(res) + 0.5) / res * 2.0 - 1.0
+    gu, gv = np.meshgrid(uc, -uc)
+    m = np.asarray(view.view, np.float64)
+    rot = m[:3, :3]
+    hit = np.isfinite(depth)[..., None]
+    d = np.where(hit, depth.astype(np.float64)[..., None], 0.0)
+    if view.ortho:
+        sc = view.half_extent
+        y0 = ((gu * sc - m[0, 3])[..., None] * rot[0]
+              + (gv * sc - m[1, 3])[..., None] * rot[1] - m[2, 3] * rot[2])
+        pts = y0 - d * rot[2]
+    else:
+        sc = view.tan_half
+        f = (gu * sc)[..., None] * rot[0] + (gv * sc)[..., None] * rot[1] - rot[2]
+        f /= np.sqrt(np.einsum("ijk,ijk->ij", f, f))[..., None]
+        pts = eye + d * f
+    lo, hi = np.where(hit, pts, np.inf), np.where(hit, pts, -np.inf)
+    chans = [(depth.astype(np.float64), np.inf, np.minimum),
+             (depth.astype(np.float64), -np.inf, np.maximum)]
+    chans += [(lo[..., i], np.inf, np.minimum) for i in range(3)]
+    chans += [(hi[..., i], -np.inf, np.maximum) for i in range(3)]
+    out = []
+    for c, fill, op in chans:
+        c = np.pad(c, pad, constant_values=fill)
+        for _ in range(PYRAMID_FROM):
+            c = _halve(c, op)
+        out.append(c)
+    return np.stack(out, -1)
+
+
+def _halve(c: np.ndarray, op) -> np.ndarray:
+    """op (np.minimum, np.maximum) over the 2 x 2 blocks of an even-sided square array."""
+    return op(op(c[0::2, 0::2], c[1::2, 0::2]), op(c[0::2, 1::2], c[1::2, 1::2]))
 
 
 @dataclass
