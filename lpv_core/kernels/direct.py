@@ -15,7 +15,7 @@ from ..scene.model import Light
 
 KINDS = {"POINT": 0, "SPOT": 1, "AREA": 2, "SUN": 3}  # the light types the kernel lights
 # render.direct's constants (the stage owns them; a kernel never imports its stage)
-SEARCH_SIDE, FILTER_SIDE, SEARCH_AT, PYRAMID_FROM = 6, 6, 0.5, 2  # REFINE = 2: _sub_blocks
+SEARCH_SIDE, FILTER_SIDE, SEARCH_AT, PYRAMID_FROM = 6, 6, 0.5, 2  # REFINE 2: _sub_blocks
 HARD, SPHERE, RECTANGLE, ELLIPSE, CONE = 0, 1, 2, 3, 4
 HASH_A = (12.9898, 78.233, 37.719, 43758.5453)
 HASH_B = (39.3468, 11.135, 83.155, 24634.6345)
@@ -559,38 +559,30 @@ def _box_test(pyr, levs, vw, x0, x1, y0, y1, qx, qy, qz, nx, ny, nz, lim, bias,
             if good or not ok:
                 continue
             ok = _sub_blocks(pyr, levs, vw, lev, bx, by, x0, x1, y0, y1, nx, ny, nz, nq,
-                             lim, bias, umbra, True)
+                             lim, bias, umbra)
     return ok, least
 
 
 @jit.kernel
 def _sub_blocks(pyr, levs, vw, lev, bx, by, x0, x1, y0, y1, nx, ny, nz, nq, lim, bias,
-                umbra, deeper):  # pragma: no cover
-    """Whether a failing block's sub-blocks two levels down within the box all pass
-    (direct._box_test's refinement; ``deeper``: a failing one refined once more)."""
+                umbra):  # pragma: no cover
+    """direct._box_test's refinement of a failing block: its sub-blocks two levels down in
+    the box, a failing one's two levels further."""
     st = min(lev - PYRAMID_FROM, 2)
     lv = lev - st
     for cy in range(max(by << st, y0 >> lv), min((by + 1) << st, (y1 >> lv) + 1)):
         for cx in range(max(bx << st, x0 >> lv), min((bx + 1) << st, (x1 >> lv) + 1)):
             if _block(pyr, levs, vw, lv, cx, cy, nx, ny, nz, nq, lim, bias, umbra)[0]:
                 continue
-            if not deeper or lv == PYRAMID_FROM or not _sub_blocks_last(
-                    pyr, levs, vw, lv, cx, cy, x0, x1, y0, y1, nx, ny, nz, nq, lim, bias,
-                    umbra):
+            if lv == PYRAMID_FROM:
                 return False
-    return True
-
-
-@jit.kernel
-def _sub_blocks_last(pyr, levs, vw, lev, bx, by, x0, x1, y0, y1, nx, ny, nz, nq, lim,
-                     bias, umbra):  # pragma: no cover
-    """_sub_blocks without a further refinement."""
-    st = min(lev - PYRAMID_FROM, 2)
-    lv = lev - st
-    for cy in range(max(by << st, y0 >> lv), min((by + 1) << st, (y1 >> lv) + 1)):
-        for cx in range(max(bx << st, x0 >> lv), min((bx + 1) << st, (x1 >> lv) + 1)):
-            if not _block(pyr, levs, vw, lv, cx, cy, nx, ny, nz, nq, lim, bias, umbra)[0]:
-                return False
+            t = min(lv - PYRAMID_FROM, 2)
+            for ey in range(max(cy << t, y0 >> lv - t), min((cy + 1) << t, (y1 >> lv - t) + 1)):
+                for ex in range(max(cx << t, x0 >> lv - t),
+                                min((cx + 1) << t, (x1 >> lv - t) + 1)):
+                    if not _block(pyr, levs, vw, lv - t, ex, ey, nx, ny, nz, nq, lim, bias,
+                                  umbra)[0]:
+                        return False
     return True
 
 
