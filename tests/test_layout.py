@@ -16,9 +16,11 @@ PACKAGES = ("lpv_core", "lpv_addon")
 # the render engine, the shadow and RSM budgets, the input checks and the batch's output
 # handling added about 1,500 lines of new behaviour; the light sources without an RSM (World,
 # emitters), soft shadows and exact area lights, and the materials (Cycles' Diffuse Color
-# rule, textures per point) about 3,300 more. The cap catches duplicated code growing back;
+# rule, textures per point) about 3,300 more; the glossy bounce, Diffuse Color over each pixel's
+# footprint and the view angle, the sky maps' atlas, an HDRI's sun and the soft shadows'
+# depth pyramid about 1,300 more (19,755 then). The cap catches duplicated code growing back;
 # raise it only for new behaviour, by what that behaviour measures.
-ZIP_PYTHON_LINES = 19_500
+ZIP_PYTHON_LINES = 20_000
 
 
 def _module_name(path: Path) -> str:
