@@ -71,7 +71,7 @@ def world_from_blender(world, scene) -> tuple:
         e = float(np.dot(sun[0], core.sky.LUMA))
         notes.append(f"World '{world.name}': its sun ({math.degrees(sun[2]):.2f} deg across, "
                      f"{e / max(e + _light(radiance), 1e-30):.0%} of its light) is the SUN lamp "
-                     f"'{lights[-1].name}', its texels filled with the level around them")
+                     f"'{lights[-1].name}', out of the World's map")
     if not radiance.max() > 0 and not lights:
         return None, notes, []
     digest = hashlib.sha256(radiance.tobytes() + str(radiance.shape).encode()).hexdigest()
