@@ -43,3 +43,19 @@ def registered_addon():
     lpv_addon.register()
     yield
     lpv_addon.unregister()
+
+
+def surface_points(rng, positions, m: int):
+    """``m`` points spread uniformly over random triangles of ``positions`` (T*3, 3) and their
+    unit face normals, drawn from ``rng``."""
+    import numpy as np
+
+    tri = positions.reshape(-1, 3, 3)
+    pick = rng.integers(0, tri.shape[0], m)
+    a, b = rng.uniform(size=(2, m, 1))
+    flip = a + b > 1
+    a, b = np.where(flip, 1 - a, a), np.where(flip, 1 - b, b)
+    t = tri[pick]
+    pos = t[:, 0] + a * (t[:, 1] - t[:, 0]) + b * (t[:, 2] - t[:, 0])
+    nrm = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
+    return pos, nrm / np.linalg.norm(nrm, axis=1, keepdims=True)

@@ -8,6 +8,8 @@ import pytest
 
 pytest.importorskip("numba")
 
+from conftest import surface_points
+
 from lpv_core import engine
 from lpv_core.render import direct
 from lpv_core.runtime import jit
@@ -21,15 +23,7 @@ def _receivers(scene, m: int, seed: int):
     """Points on the scene's triangles (shadowed and lit ones) and a few off them, with
     their face normals, some flipped (facing away from the light)."""
     rng = np.random.default_rng(seed)
-    tri = scene.positions.reshape(-1, 3, 3)
-    pick = rng.integers(0, tri.shape[0], m)
-    a, b = rng.uniform(size=(2, m, 1))
-    flip = a + b > 1
-    a, b = np.where(flip, 1 - a, a), np.where(flip, 1 - b, b)
-    t = tri[pick]
-    pos = t[:, 0] + a * (t[:, 1] - t[:, 0]) + b * (t[:, 2] - t[:, 0])
-    nrm = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
-    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    pos, nrm = surface_points(rng, scene.positions, m)
     nrm[rng.uniform(size=m) < 0.1] *= -1.0
     pos[: m // 20] += rng.normal(scale=3.0, size=(m // 20, 3))  # some far outside
     return pos, nrm

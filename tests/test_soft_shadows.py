@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import surface_points
 
 from lpv_core import engine
 from lpv_core.render import direct
@@ -208,16 +209,7 @@ def test_compiled_soft_shadows_are_the_numpy_ones(variant):
     eng = engine.Engine()
     bounds = eng.upload(scene, engine.Stats())
     shadow = eng.shadow_map(scene, light, bounds, 256)
-    rng = np.random.default_rng(7)
-    tri = scene.positions.reshape(-1, 3, 3)
-    pick = rng.integers(0, tri.shape[0], 20000)
-    a, b = rng.uniform(size=(2, 20000, 1))
-    flip = a + b > 1
-    a, b = np.where(flip, 1 - a, a), np.where(flip, 1 - b, b)
-    t = tri[pick]
-    pos = t[:, 0] + a * (t[:, 1] - t[:, 0]) + b * (t[:, 2] - t[:, 0])
-    nrm = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
-    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    pos, nrm = surface_points(np.random.default_rng(7), scene.positions, 20000)
     got = direct.irradiance(light, pos, nrm, shadow)
     vis = direct.visibility(shadow, pos, nrm)
     with jit.disabled():
@@ -262,16 +254,7 @@ def test_pyramid_early_outs_are_what_the_taps_give(kind, monkeypatch):
     eng = engine.Engine()
     bounds = eng.upload(scene, engine.Stats())
     shadow = eng.shadow_map(scene, light, bounds, 512)
-    rng = np.random.default_rng(11)
-    tri = scene.positions.reshape(-1, 3, 3)
-    pick = rng.integers(0, tri.shape[0], 20000)
-    a, b = rng.uniform(size=(2, 20000, 1))
-    flip = a + b > 1
-    a, b = np.where(flip, 1 - a, a), np.where(flip, 1 - b, b)
-    t = tri[pick]
-    pos = t[:, 0] + a * (t[:, 1] - t[:, 0]) + b * (t[:, 2] - t[:, 0])
-    nrm = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
-    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    pos, nrm = surface_points(np.random.default_rng(11), scene.positions, 20000)
     lit = direct.irradiance(light, pos, nrm)[:, 0] > 0
     pos, nrm = pos[lit], nrm[lit]
     tapped = []

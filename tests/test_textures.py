@@ -590,6 +590,26 @@ def _area_fraction(cells: int, texels: int, checker: np.ndarray) -> np.ndarray:
     return (over @ checker @ over.T)[::-1]  # rows: v from the top
 
 
+def _checker_view(interpolation: str, extension: str, digest: str, **settings):
+    """A 5 x 5 checker (0 / 1) texture on a 2 m square seen head-on by an orthographic camera
+    whose 16 x 16 pixels cover the square: (checker, texture, the render's Diffuse Color)."""
+    from lpv_core.scene.model import look_at_matrix, orthographic_matrix
+
+    n, res = 5, 16
+    checker = (np.add.outer(np.arange(n), np.arange(n)) % 2).astype(np.float32)
+    tex = Texture("chk", np.repeat(checker[..., None], 3, axis=2), interpolation, extension,
+                  digest)
+    pos = demo.quad((-1, -1, 0), (1, -1, 0), (1, 1, 0), (-1, 1, 0))
+    uvs = np.stack([(pos[..., 0] + 1) / 2, (pos[..., 1] + 1) / 2], -1)
+    cam = Camera(look_at_matrix((0, 0, 3), (0, 0, 0), (0, 1, 0)),
+                 orthographic_matrix(1.0, 1.0, 0.1, 10.0), (res, res))
+    scene = make_scene(pos, material_index=np.zeros(2, np.int32),
+                       materials=[Material("chk", np.ones(3, np.float32), texture=tex)],
+                       lights=[], camera=cam, uvs=uvs, settings=GISettings(**settings))
+    eng = engine.Engine()
+    return checker, tex, deferred.render(eng, scene, eng.update(scene))["Diffuse Color"][..., 0]
+
+
 @pytest.mark.parametrize("antialias", [1, 2])
 def test_diffuse_color_is_the_area_fraction_of_a_closest_checker(antialias):
     """A 5 x 5 Closest checker (0 / 1) on a 2 m square seen head-on by an orthographic camera
@@ -597,22 +617,9 @@ def test_diffuse_color_is_the_area_fraction_of_a_closest_checker(antialias):
     the 1-texels in it (texel edges cross pixels at fifths of sixteenths), within the
     FOOTPRINT_SPLIT x antialias sub-points' resolution: an axis-aligned edge is off by at
     most half a sub-point's width per axis. One point per sample is off by up to 1/2."""
-    from lpv_core.scene.model import look_at_matrix, orthographic_matrix
-
-    n, res = 5, 16
-    checker = (np.add.outer(np.arange(n), np.arange(n)) % 2).astype(np.float32)
-    tex = Texture("chk", np.repeat(checker[..., None], 3, axis=2), "Closest", "REPEAT", "chk5")
-    pos = demo.quad((-1, -1, 0), (1, -1, 0), (1, 1, 0), (-1, 1, 0))
-    uvs = np.stack([(pos[..., 0] + 1) / 2, (pos[..., 1] + 1) / 2], -1)
-    cam = Camera(look_at_matrix((0, 0, 3), (0, 0, 0), (0, 1, 0)),
-                 orthographic_matrix(1.0, 1.0, 0.1, 10.0), (res, res))
-    scene = make_scene(pos, material_index=np.zeros(2, np.int32),
-                       materials=[Material("chk", np.ones(3, np.float32), texture=tex)],
-                       lights=[], camera=cam, uvs=uvs,
-                       settings=GISettings(antialias=antialias, cascades=1))
-    eng = engine.Engine()
-    color = deferred.render(eng, scene, eng.update(scene))["Diffuse Color"][..., 0]
-    expected = _area_fraction(res, n, checker)
+    checker, _, color = _checker_view("Closest", "REPEAT", "chk5", antialias=antialias,
+                                      cascades=1)
+    expected = _area_fraction(16, 5, checker)
     err = np.abs(color - expected)
     bound = 1.0 / (tx.FOOTPRINT_SPLIT * antialias)  # 1/(2k) per axis, two axes
     assert err.max() <= bound + 1e-6, (err.max(), bound)
@@ -625,21 +632,8 @@ def test_footprint_follows_the_textures_interpolation(interpolation):
     """The same view of a Linear / Cubic checker: each pixel is the texture's mean over the
     pixel (sample's own interpolation, 48^2 points a pixel), within the refinement threshold
     and the sub-points' resolution; the pixel's centre alone is off by 3 times more."""
-    from lpv_core.scene.model import look_at_matrix, orthographic_matrix
-
-    n, res, k = 5, 16, 48
-    checker = (np.add.outer(np.arange(n), np.arange(n)) % 2).astype(np.float32)
-    tex = Texture("chk", np.repeat(checker[..., None], 3, axis=2), interpolation, "EXTEND",
-                  "chk5" + interpolation)
-    pos = demo.quad((-1, -1, 0), (1, -1, 0), (1, 1, 0), (-1, 1, 0))
-    uvs = np.stack([(pos[..., 0] + 1) / 2, (pos[..., 1] + 1) / 2], -1)
-    cam = Camera(look_at_matrix((0, 0, 3), (0, 0, 0), (0, 1, 0)),
-                 orthographic_matrix(1.0, 1.0, 0.1, 10.0), (res, res))
-    scene = make_scene(pos, material_index=np.zeros(2, np.int32),
-                       materials=[Material("chk", np.ones(3, np.float32), texture=tex)],
-                       lights=[], camera=cam, uvs=uvs, settings=GISettings(antialias=1))
-    eng = engine.Engine()
-    color = deferred.render(eng, scene, eng.update(scene))["Diffuse Color"][..., 0]
+    res, k = 16, 48
+    _, tex, color = _checker_view(interpolation, "EXTEND", "chk5" + interpolation, antialias=1)
     g = (np.arange(res * k) + 0.5) / (res * k)
     u, v = np.meshgrid(g, g[::-1])
     fine = tx.sample(tex, np.stack([u.ravel(), v.ravel()], 1))[:, 0].reshape(res * k, res * k)
