@@ -236,14 +236,10 @@ def camera_light(engine, scene, projection, mask: np.ndarray, combined: np.ndarr
         glow[ok] = table[scene.material_index[tri[ok]]]
         combined[..., :3][mask] += glow
     if not sky.lit(scene.world) and not mask.all():
+        from .render.raster import PixelRays
+
         ys, xs = np.nonzero(~mask)
-        ndc = np.stack([(xs + 0.5) / w * 2 - 1, 1 - (ys + 0.5) / h * 2,
-                        np.ones(xs.size), np.ones(xs.size)], axis=1)
-        inv = np.linalg.inv(np.asarray(projection, np.float64) @ np.asarray(scene.camera.view))
-        far = ndc @ inv.T
-        near_ndc = ndc.copy()
-        near_ndc[:, 2] = -1.0
-        near = near_ndc @ inv.T
-        d = far[:, :3] / far[:, 3:] - near[:, :3] / near[:, 3:]
+        d = PixelRays(scene.camera.view, projection, w, h, ~mask, 0.0).at(
+            np.arange(xs.size), np.zeros((1, 2)))[1][:, 0]
         d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-300)
         combined[ys, xs, :3] += sky.lookup(scene.world, d)

@@ -462,3 +462,29 @@ def test_gi_sky_light_skips_faces_under_a_thin_layer_or_inside_a_solid():
         e = e.reshape(5, 40) / (np.pi * L)
         assert e[0].max() < 0.02 and e[3].max() < 0.02 and e[4].max() < 0.02
         assert e[1].min() > 0.95 and np.allclose(e[2], 1.0, atol=0.02)  # the cube: <= 3 %
+
+
+def test_the_background_is_the_world_along_each_pixels_ray():
+    """Where the camera sees no surface, Combined is the World's radiance along the pixel's
+    ray, built here from the camera's basis (forward, right, up and the field of view); the
+    rays reversed miss by far more."""
+    dirs, _ = sky.map_directions(16, 32)
+    radiance = ((1.0 + 0.6 * dirs[..., 0] + 0.3 * dirs[..., 1] + 0.45 * dirs[..., 2])[..., None]
+                * np.array([1.0, 0.8, 0.6])).astype(np.float32)
+    world = World("W", radiance, digest="smooth")
+    look, fov, n = np.array([1.0, 1.0, 0.5]) / 1.5, 1.2, 16
+    scene = make_scene(quad((-1, -1, -50), (1, -1, -50), (1, 1, -50), (-1, 1, -50)),
+                       lights=[], camera=camera([0, 0, 0], look, (n, n), fov), world=world,
+                       settings=GISettings(antialias=1))
+    eng = engine.Engine()
+    got = deferred.render(eng, scene, eng.update(scene))["Combined"][..., :3]
+    right = np.cross(look, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, look)
+    c = ((np.arange(n) + 0.5) / n * 2 - 1) * np.tan(fov / 2)
+    x, y = np.meshgrid(c, -c)  # rows top-first
+    rays = look + x[..., None] * right + y[..., None] * up
+    rays = (rays / np.linalg.norm(rays, axis=-1, keepdims=True)).reshape(-1, 3)
+    want = sky.lookup(world, rays).reshape(n, n, 3)
+    np.testing.assert_allclose(got, want, rtol=1e-5)
+    assert np.abs(got - sky.lookup(world, -rays).reshape(n, n, 3)).max() > 0.5

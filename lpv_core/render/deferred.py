@@ -15,7 +15,7 @@ import numpy as np
 from .. import areas, lookup, sources
 from ..engine import Engine, LPVResult, Stats, Timer
 from ..scene.model import Scene
-from . import direct
+from . import direct, raster
 
 VIEWER_NUDGE_CELLS = 0.02  # toward_viewer's distance in cells of the finest cascade
 PASS_NAMES = ("Combined", "Diffuse Direct", "Diffuse Indirect", "Diffuse Color")
@@ -30,13 +30,7 @@ def toward_viewer(camera, positions: np.ndarray, distance: float) -> np.ndarray:
     ceiling edges). The camera sees the point, so the side towards it is open; 2 % of a cell
     decides the tie (injection.visible_corners' tolerance is 0.1 %) and moves the sample by
     2 % of a cell's trilinear span elsewhere."""
-    inv = np.linalg.inv(np.asarray(camera.view, np.float64))
-    if abs(float(np.asarray(camera.projection)[3, 3])) > 0.5:  # orthographic: w = 1
-        toward = np.broadcast_to(inv[:3, 2], positions.shape)  # camera +Z points back at it
-    else:
-        toward = inv[:3, 3] - positions
-    length = np.linalg.norm(toward, axis=-1, keepdims=True)
-    return positions + toward / np.maximum(length, 1e-30) * distance
+    return positions + raster.to_eye(camera.view, camera.projection, positions) * distance
 
 
 MAX_ANTIALIAS = 8

@@ -126,9 +126,20 @@ TEXTURED_RSM_SHADERS = _with_barycentrics(RSM_VERTEX_SHADER, RSM_FRAGMENT_SHADER
                                  "vec4(v_bary, 0.0, 0.0)")
 
 
-class _PixelRays:
-    """The camera rays through points of the covered pixels' cells: world origin and direction
-    from unprojecting the near and far planes (perspective and orthographic alike)."""
+def to_eye(view, projection, positions: np.ndarray) -> np.ndarray:
+    """Unit directions (N, 3) from ``positions`` towards a camera's eye (orthographic: its
+    view axis, the same for every point)."""
+    inv = np.linalg.inv(np.asarray(view, np.float64))
+    if abs(float(np.asarray(projection)[3, 3])) > 0.5:  # orthographic: w = 1
+        toward = np.broadcast_to(inv[:3, 2], np.shape(positions))  # camera +Z points back at it
+    else:
+        toward = inv[:3, 3] - positions
+    return toward / np.maximum(np.linalg.norm(toward, axis=-1, keepdims=True), 1e-30)
+
+
+class PixelRays:
+    """The camera rays through points of the ``covered`` pixels' cells: world origin and
+    direction from unprojecting the near and far planes (perspective and orthographic alike)."""
 
     def __init__(self, view, projection, width: int, height: int, covered, footprint: float):
         self.inv = np.linalg.inv(np.asarray(projection, np.float64) @ np.asarray(view, np.float64))
@@ -457,7 +468,7 @@ class Rasterizer:
             factor = self.surface.factor(tri, b[:, :2])
             if footprint > 0:
                 corners = self.corners
-                ray = _PixelRays(view, projection, width, height, covered, footprint)
+                ray = PixelRays(view, projection, width, height, covered, footprint)
 
                 def bary_at(rows, offsets):
                     return textures.plane_barycentric(corners[tri[rows]], *ray.at(rows, offsets),
@@ -471,10 +482,7 @@ class Rasterizer:
             rows, table = self.shares
             r = rows[tri]
             has = np.flatnonzero(r >= 0)
-            inv = np.linalg.inv(np.asarray(view, np.float64))  # deferred.toward_viewer's rule
-            d = (inv[:3, 2] if abs(float(np.asarray(projection)[3, 3])) > 0.5
-                 else inv[:3, 3] - pos[has])
-            cos = (nrm[has] * d).sum(-1) / np.maximum(np.linalg.norm(d, axis=-1), 1e-30)
+            cos = (nrm[has] * to_eye(view, projection, pos[has])).sum(-1)
             albedo[has] *= textures.share_at(table, r[has], cos)
         return covered, pos, nrm, albedo, alb[:, 3] > 0.5
 
