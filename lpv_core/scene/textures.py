@@ -362,17 +362,13 @@ def plane_barycentric(corners: np.ndarray, origins: np.ndarray, directions: np.n
     (N, K, 3) meet the planes of the triangles ``corners`` (N, 3, 3), extrapolated past the
     triangle; ``fallback`` (N, 2) where a ray misses the plane (parallel, behind, non-finite)."""
     c = np.asarray(corners, np.float64)
-    e1, e2 = c[:, 1] - c[:, 0], c[:, 2] - c[:, 0]
-    n = np.cross(e1, e2)[:, None]
+    n = np.cross(c[:, 1] - c[:, 0], c[:, 2] - c[:, 0])[:, None]
     with np.errstate(divide="ignore", invalid="ignore"):
         t = ((c[:, None, 0] - origins) * n).sum(2) / (directions * n).sum(2)
-        ok = np.isfinite(t) & (t > 0)
-        p = origins + np.where(ok, t, 0.0)[..., None] * directions - c[:, None, 0]
-        d11, d12, d22 = (e1 * e1).sum(1), (e1 * e2).sum(1), (e2 * e2).sum(1)
-        det = (d11 * d22 - d12 * d12)[:, None]
-        p1, p2 = (p * e1[:, None]).sum(2), (p * e2[:, None]).sum(2)
-        b = np.stack([(d22[:, None] * p1 - d12[:, None] * p2) / det,
-                      (d11[:, None] * p2 - d12[:, None] * p1) / det], axis=2)
+    ok = np.isfinite(t) & (t > 0) & (np.abs(n).sum(2) > 0)  # a degenerate triangle: no plane
+    hit = origins + np.where(ok, t, 0.0)[..., None] * directions
+    k = hit.shape[1]
+    b = barycentric(np.repeat(c, k, axis=0), hit.reshape(-1, 3)).reshape(-1, k, 2)
     ok &= np.isfinite(b).all(2)
     return np.where(ok[..., None], b, np.asarray(fallback, np.float64)[:, None])
 
