@@ -175,9 +175,13 @@ class _Evaluator:
     def shader(self, socket, stack=(), depth=0) -> tuple[_Color, np.ndarray]:
         """(diffuse colour, emitted radiance) of the shader feeding ``socket``."""
         node, _, stack = self.resolve(socket, stack)
-        zero = np.zeros(3)
         if node is None or depth > 32:
-            return _const(zero), zero
+            return _const(np.zeros(3)), np.zeros(3)
+        return self.node_shader(node, stack, depth)
+
+    def node_shader(self, node, stack, depth) -> tuple[_Color, np.ndarray]:
+        """shader() of the (resolved) ``node``."""
+        zero = np.zeros(3)
         kind = node.bl_idname
         if kind == "ShaderNodeBsdfPrincipled":
             return self.principled(node, stack)
@@ -226,17 +230,7 @@ class _Evaluator:
         # it is (measured: tint (1, 0.4, 0.2) at IOR 1.8, every view angle, within 0.03 %).
         spec = 1.0 - layer_transmitted(rough, f0)
         weight = k * np.clip(1.0 - spec, 0.0, 1.0)
-        over = 1.0  # the coat above both the base and the sheen
-        coat = np.clip(val("Coat Weight"), 0.0, 1.0)
-        if coat > 0:
-            coat_ior = max(val("Coat IOR", 1.5), 1e-6)
-            cf0 = ((coat_ior - 1.0) / (coat_ior + 1.0)) ** 2
-            coat_tint = self.color(inp["Coat Tint"], stack).mean()
-            # the coat's own measured table: it reflects more than the specular layer of the
-            # same roughness and IOR once rough (0.889 against 0.891 at 0.375, IOR 2)
-            coat_albedo = 1.0 - float(_view_table("coat_transmitted", val("Coat Roughness", 0.03),
-                                                  cf0)[-1, 0])
-            over = (1.0 - coat * coat_albedo) * (1.0 - coat + coat * coat_tint)
+        over = self.coat_over(inp, stack)  # the coat above both the base and the sheen
         sheen = np.clip(val("Sheen Weight"), 0.0, 1.0) * np.interp(
             np.clip(val("Sheen Roughness", 0.5), 0.0, 1.0), _ROUGHNESS, _SHEEN_ALBEDO)
         base = self.color(inp["Base Color"], stack)
@@ -251,6 +245,22 @@ class _Evaluator:
             if strength != 0:
                 emission = self.mean(inp["Emission Color"], stack, "emission") * strength
         return base, emission
+
+    def coat_over(self, inp, stack) -> np.ndarray | float:
+        """What a Principled's coat lets through to the layers under it, head-on: 1 - weight x
+        its albedo, times its tint's share (1 without a coat)."""
+        coat = float(np.clip(self.value(inp["Coat Weight"], stack), 0.0, 1.0)) \
+            if "Coat Weight" in inp else 0.0
+        if coat == 0:
+            return 1.0
+        ior = max(self.value(inp["Coat IOR"], stack), 1e-6)
+        # the coat's own measured table: it reflects more than the specular layer of the
+        # same roughness and IOR once rough (0.889 against 0.891 at 0.375, IOR 2)
+        albedo = 1.0 - float(_view_table("coat_transmitted", self.value(inp["Coat Roughness"],
+                                                                        stack),
+                                         ((ior - 1.0) / (ior + 1.0)) ** 2)[-1, 0])
+        tint = self.mean(inp["Coat Tint"], stack, "coat tint")
+        return (1.0 - coat * albedo) * (1.0 - coat + coat * tint)
 
     def view_share(self, inp, stack, base: np.ndarray, alpha: float, f0: float) -> np.ndarray:
         """(K, 3) Principled's Diffuse Color at core SHARE_COS over its head-on value, as
@@ -277,28 +287,36 @@ class _Evaluator:
             absorbed = np.clip(self.color(inp["Coat Tint"], stack).mean(), 1e-6, None) ** (
                 1.0 / cos_t)
             total = total * (1.0 - coat * (1.0 - layer)) * (1.0 - coat + coat * absorbed)
-        head = total[-1]
-        return np.where(head > 0, total / np.where(head > 0, head, 1.0), 1.0)
+        return _over_head(total)
 
-    def view_total(self, socket, stack=(), depth=0) -> np.ndarray:
-        """(K, 3) the mean Diffuse Color of the shader feeding ``socket`` at core SHARE_COS: a
-        Principled's head-on mean x its view_share, Mix and Add Shader weighted as shader()
-        weighs them, every other shader its head-on mean (no view table)."""
+    def weighted(self, socket, leaf, zero: np.ndarray, stack=(), depth=0) -> np.ndarray:
+        """``leaf(node, stack, depth)`` of the shaders feeding ``socket``, Mix and Add Shader
+        weighted as shader() weighs their colours; ``zero`` where no shader is."""
         node, _, stack = self.resolve(socket, stack)
-        k = len(core.scene.textures.SHARE_COS)
         if node is None or depth > 32:
-            return np.zeros((k, 3))
+            return zero
         kind = node.bl_idname
         if kind in ("ShaderNodeMixShader", "ShaderNodeAddShader"):
-            a, b = (self.view_total(x, stack, depth + 1) for x in node.inputs
+            a, b = (self.weighted(x, leaf, zero, stack, depth + 1) for x in node.inputs
                     if x.type == "SHADER")
             if kind == "ShaderNodeAddShader":
                 return a + b
             f = float(np.clip(self.value(node.inputs[0], stack), 0.0, 1.0))
             return (1.0 - f) * a + f * b
-        self.share = None
-        mean = np.broadcast_to(self.shader(socket, stack, depth)[0].mean(), (3,))
-        return mean * (1.0 if self.share is None else self.share) * np.ones((k, 1))
+        return leaf(node, stack, depth)
+
+    def view_total(self, socket) -> np.ndarray:
+        """(K, 3) the mean Diffuse Color of the shader feeding ``socket`` at core SHARE_COS: a
+        Principled's head-on mean x its view_share, Mix and Add Shader weighted (weighted),
+        every other shader its head-on mean (no view table)."""
+        k = len(core.scene.textures.SHARE_COS)
+
+        def leaf(node, stack, depth):
+            self.share = None
+            mean = np.broadcast_to(self.node_shader(node, stack, depth)[0].mean(), (3,))
+            return mean * (1.0 if self.share is None else self.share) * np.ones((k, 1))
+
+        return self.weighted(socket, leaf, np.zeros((k, 3)))
 
     # ---------------------------------------------------------------------- colour algebra
 
@@ -541,23 +559,20 @@ def f82_average(f0, tint) -> np.ndarray:
     return np.clip(f0 + (1.0 - f0) / 21.0 - b / 126.0, 0.0, 1.0)
 
 
-def glossy_reflectance(ev: _Evaluator, socket, stack=(), depth: int = 0) -> np.ndarray:
+def glossy_reflectance(ev: _Evaluator, socket) -> np.ndarray:
     """The share of incident flux the shader feeding ``socket`` reflects glossily (RGB; the
     RSM's mirror VPLs): Principled's metal part (metallic x alpha x coat x f82_average of the
     base colour and specular tint), Glossy BSDF's colour, Metallic BSDF's f82_average,
     weighted through Mix and Add Shader like the diffuse rule. Dielectric specular layers
     (F0 ~ 0.04) are left out; colours that vary take their mean (reported)."""
-    node, _, stack = ev.resolve(socket, stack)
+    return ev.weighted(socket, lambda node, stack, depth: _glossy_node(ev, node, stack),
+                       np.zeros(3))
+
+
+def _glossy_node(ev: _Evaluator, node, stack) -> np.ndarray:
+    """glossy_reflectance of one (resolved) shader node."""
     zero = np.zeros(3)
-    if node is None or depth > 32:
-        return zero
     kind, inp = node.bl_idname, node.inputs
-    if kind in ("ShaderNodeMixShader", "ShaderNodeAddShader"):
-        a, b = (glossy_reflectance(ev, x, stack, depth + 1) for x in inp if x.type == "SHADER")
-        if kind == "ShaderNodeAddShader":
-            return a + b
-        f = float(np.clip(ev.value(inp[0], stack), 0.0, 1.0))
-        return (1.0 - f) * a + f * b
     if kind == "ShaderNodeBsdfAnisotropic":  # Glossy BSDF: its colour, no Fresnel
         return ev.mean(inp["Color"], stack, "glossy")
     if kind == "ShaderNodeBsdfMetallic":
@@ -573,15 +588,7 @@ def glossy_reflectance(ev: _Evaluator, socket, stack=(), depth: int = 0) -> np.n
     if metallic == 0:
         return zero
     alpha = float(np.clip(ev.value(inp["Alpha"], stack), 0.0, 1.0)) if "Alpha" in inp else 1.0
-    coat = float(np.clip(ev.value(inp["Coat Weight"], stack), 0.0, 1.0)) \
-        if "Coat Weight" in inp else 0.0
-    over = 1.0
-    if coat > 0:  # the coat's albedo and tint over the metal, as principled() puts them
-        ior = max(ev.value(inp["Coat IOR"], stack), 1e-6)
-        albedo = 1.0 - layer_transmitted(ev.value(inp["Coat Roughness"], stack),
-                                         ((ior - 1.0) / (ior + 1.0)) ** 2)
-        over = (1.0 - coat * albedo) * (1.0 - coat + coat * ev.mean(inp["Coat Tint"], stack,
-                                                                      "coat tint"))
+    over = ev.coat_over(inp, stack)  # the coat over the metal, as over the diffuse base
     tint = ev.mean(inp["Specular Tint"], stack, "specular tint") if "Specular Tint" in inp \
         else 1.0
     return metallic * alpha * over * f82_average(ev.mean(inp["Base Color"], stack, "metal"),
@@ -614,6 +621,12 @@ def _view_table(name: str, roughness: float, f0: float | None = None) -> np.ndar
         at = _lerp(_VIEW["roughness"] ** 2, r * r, _lerp(_VIEW["f0"], f, t.swapaxes(0, 1)))
     o = _VIEW["order"]
     return np.interp(core.scene.textures.SHARE_COS, _VIEW["cos_view"][o], at[o])[:, None]
+
+
+def _over_head(total: np.ndarray) -> np.ndarray:
+    """(K, 3) a table over SHARE_COS as multiples of its head-on (last) row; 1 where that is 0."""
+    head = total[-1]
+    return np.where(head > 0, total / np.where(head > 0, head, 1.0), 1.0)
 
 
 def _lerp(grid: np.ndarray, x: float, values: np.ndarray) -> np.ndarray:
@@ -675,8 +688,7 @@ def material_info(mat) -> MaterialInfo:
         counted = ev.defaulted  # (the second walk reads the same images again)
         total = ev.view_total(surface)
         ev.defaulted = counted
-        head = total[-1]
-        share = np.where(head > 0, total / np.where(head > 0, head, 1.0), 1.0)
+        share = _over_head(total)
         if np.isfinite(share).all() and not np.allclose(share, 1.0):
             m.diffuse_share = np.ascontiguousarray(share, np.float32)
     m.specular = np.clip(np.nan_to_num(glossy), 0.0, None).astype(np.float32)
