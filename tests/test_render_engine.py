@@ -64,10 +64,13 @@ out["f12"] = sorted(bpy.ops.render.render(write_still=True))
 scene.render.filepath = os.path.join(tmp, "anim", "frame_")
 out["anim"] = sorted(bpy.ops.render.render(animation=True))
 
-# Ctrl-C while frame 2 computes (a bigger frame, so the signal lands in it).
+# Ctrl-C while frame 2 computes: the signal is sent 50 ms after the stats line that comes
+# just before the engine waits on the worker, so the main thread meets it in that wait (a
+# bigger frame keeps the wait long). Sent later, it could meet the main thread in Blender's
+# C code and then surface in a render_stats handler, which Blender's handler call swallows.
 def on_stats(text):
     if "propagation" in str(text) and bpy.context.scene.frame_current == 2:
-        threading.Timer(0.3, os.kill, (os.getpid(), signal.SIGINT)).start()
+        threading.Timer(0.05, os.kill, (os.getpid(), signal.SIGINT)).start()
 bpy.app.handlers.render_stats.append(on_stats)
 scene.render.resolution_percentage = 400
 scene.lpv.antialias = 4
