@@ -9,7 +9,9 @@ their colour; Mix Shader: the weighted sum, Add Shader the sum; Emission, Glossy
 Refraction, Transparent, Metallic: 0. Node groups, reroutes and muted nodes (their internal
 links) are followed as Blender evaluates them.
 
-Textures are read once per content digest and kept in a bounded cache across extractions, so
+Images through one UV map combine texel by texel into one image (``compose``: mixes,
+products, factor images, Metallic and Transmission maps); other colour graphs take a mean,
+reported. Textures are read once per content digest and kept in a bounded cache across extractions, so
 changing one image re-reads only that image. Budget: at most ``TEXTURE_BUDGET`` (1024^2)
 pixels per image; larger images are box-filtered down by a whole factor per axis.
 """
@@ -92,6 +94,15 @@ class MaterialInfo:
 
 
 _MEANS: dict[str, np.ndarray] = {}  # pixels' digest -> their mean colour
+_COMPOSED: dict[str, np.ndarray] = {}  # compose's key -> its per-texel colour
+
+
+def _same_uv(a: tuple | None, b: tuple | None) -> bool:
+    """Whether two images read the same texture coordinates (UV map and Mapping transform)."""
+    if a is None or b is None or a[0] != b[0]:
+        return False
+    return (a[1] is None and b[1] is None) or (
+        a[1] is not None and b[1] is not None and np.allclose(a[1], b[1], rtol=0, atol=1e-9))
 
 
 @dataclass
@@ -101,9 +112,10 @@ class _Color:
 
     const: np.ndarray
     pixels: np.ndarray | None = None
-    node: object = None  # the Image Texture node the pixels come from
+    node: object = None  # the Image Texture node the pixels come from (or whose grid they use)
     digest: str = ""
     attr: str | None = None
+    uv: tuple | None = None  # (UV map, 3x3 transform or None) the pixels are read through
 
     def mean(self) -> np.ndarray:
         if self.pixels is None:
@@ -202,6 +214,13 @@ class _Evaluator:
             b, eb = self.shader(shaders[1], stack, depth + 1)
             if kind == "ShaderNodeAddShader":
                 return self.combine(a, 1.0, b, 1.0), ea + eb
+            fac = self.factor_map(node.inputs[0], stack)
+            if fac is not None and not np.array_equal(ea, eb):
+                fac = None  # the emission takes the factor's mean, so the colour does too
+            mixed = None if fac is None else self.compose(
+                (fac, a, b), lambda f, x, y: x + np.clip(f, 0.0, 1.0) * (y - x), "mix shader")
+            if mixed is not None:
+                return mixed, ea
             f = float(np.clip(self.value(node.inputs[0], stack), 0.0, 1.0))
             return self.combine(a, 1.0 - f, b, f), (1.0 - f) * ea + f * eb
         if kind == "ShaderNodeBsdfSheen":  # Cycles counts sheen as diffuse: its albedo x Color
@@ -219,8 +238,17 @@ class _Evaluator:
         def val(name, default=0.0):
             return self.value(inp[name], stack) if name in inp else default
 
-        metallic = np.clip(val("Metallic"), 0.0, 1.0)
-        transmission = np.clip(val("Transmission Weight"), 0.0, 1.0)
+        base = self.color(inp["Base Color"], stack)
+        # Metallic and Transmission read from an image scale the base colour per texel.
+        kept = {}
+        for name in ("Metallic", "Transmission Weight"):
+            fac = self.factor_map(inp[name], stack) if name in inp else None
+            scaled = None if fac is None else self.compose(
+                (base, fac), lambda c, f: c * (1.0 - np.clip(f, 0.0, 1.0)), f"1-{name}")
+            if scaled is not None:
+                base, kept[name] = scaled, 0.0
+        metallic, transmission = (kept[n] if n in kept else np.clip(val(n), 0.0, 1.0)
+                                  for n in ("Metallic", "Transmission Weight"))
         alpha = np.clip(val("Alpha", 1.0), 0.0, 1.0)
         ior = max(val("IOR", 1.5), 1e-6)
         f0 = ((ior - 1.0) / (ior + 1.0)) ** 2 * 2.0 * max(val("Specular IOR Level", 0.5), 0.0)
@@ -233,7 +261,6 @@ class _Evaluator:
         over = self.coat_over(inp, stack)  # the coat above both the base and the sheen
         sheen = np.clip(val("Sheen Weight"), 0.0, 1.0) * np.interp(
             np.clip(val("Sheen Roughness", 0.5), 0.0, 1.0), _ROUGHNESS, _SHEEN_ALBEDO)
-        base = self.color(inp["Base Color"], stack)
         self.share = self.view_share(inp, stack, base.mean() * k, alpha, f0)
         base.const = base.const * weight * (1.0 - sheen) * over
         if sheen > 0:
@@ -289,19 +316,23 @@ class _Evaluator:
             total = total * (1.0 - coat * (1.0 - layer)) * (1.0 - coat + coat * absorbed)
         return _over_head(total)
 
-    def weighted(self, socket, leaf, zero: np.ndarray, stack=(), depth=0) -> np.ndarray:
+    def weighted(self, socket, leaf, zero: np.ndarray, stack=(), depth=0,
+                 purpose: str = "") -> np.ndarray:
         """``leaf(node, stack, depth)`` of the shaders feeding ``socket``, Mix and Add Shader
-        weighted as shader() weighs their colours; ``zero`` where no shader is."""
+        weighted by their factors' means (a varying factor reported ``purpose``); ``zero``
+        where no shader is."""
         node, _, stack = self.resolve(socket, stack)
         if node is None or depth > 32:
             return zero
         kind = node.bl_idname
         if kind in ("ShaderNodeMixShader", "ShaderNodeAddShader"):
-            a, b = (self.weighted(x, leaf, zero, stack, depth + 1) for x in node.inputs
+            a, b = (self.weighted(x, leaf, zero, stack, depth + 1, purpose) for x in node.inputs
                     if x.type == "SHADER")
             if kind == "ShaderNodeAddShader":
                 return a + b
-            f = float(np.clip(self.value(node.inputs[0], stack), 0.0, 1.0))
+            if np.array_equal(a, b):  # the factor changes nothing (nor is it reported)
+                return a
+            f = float(np.clip(self.value(node.inputs[0], stack, purpose), 0.0, 1.0))
             return (1.0 - f) * a + f * b
         return leaf(node, stack, depth)
 
@@ -316,23 +347,29 @@ class _Evaluator:
             mean = np.broadcast_to(self.node_shader(node, stack, depth)[0].mean(), (3,))
             return mean * (1.0 if self.share is None else self.share) * np.ones((k, 1))
 
-        return self.weighted(socket, leaf, np.zeros((k, 3)))
+        return self.weighted(socket, leaf, np.zeros((k, 3)),
+                             purpose="for the Diffuse Color's view-angle share")
 
     # ---------------------------------------------------------------------- colour algebra
 
     def combine(self, a: _Color, wa: float, b: _Color, wb: float) -> _Color:
         """wa a + wb b, kept exact where one side is constant (the image's pixels take it)."""
         if wb == 0 or not b.const.any():
-            return _Color(a.const * wa, a.pixels, a.node, a.digest, a.attr)
+            return _Color(a.const * wa, a.pixels, a.node, a.digest, a.attr, a.uv)
         if wa == 0 or not a.const.any():
-            return _Color(b.const * wb, b.pixels, b.node, b.digest, b.attr)
+            return _Color(b.const * wb, b.pixels, b.node, b.digest, b.attr, b.uv)
         if a.attr is None and b.attr is None:
             if a.pixels is not None and a.digest == b.digest and a.node == b.node:
                 # One image on both sides (the same node): its factors add.
-                return _Color(wa * a.const + wb * b.const, a.pixels, a.node, a.digest)
+                return _Color(wa * a.const + wb * b.const, a.pixels, a.node, a.digest,
+                              uv=a.uv)
             if a.pixels is not None and b.pixels is not None:
-                self.note(f"two images mixed ('{a.node.image.name}', '{b.node.image.name}'): "
-                          f"the mean colour of '{b.node.image.name}' used")
+                both = self.compose((a, b), lambda x, y: wa * x + wb * y, f"{wa}a+{wb}b")
+                if both is not None:
+                    return both
+                self.note(f"two images mixed ('{a.node.image.name}', '{b.node.image.name}') "
+                          f"through different UV maps: the mean colour of "
+                          f"'{b.node.image.name}' used")
                 b = _const(b.mean())
             if a.pixels is None and b.pixels is None:
                 return _const(wa * a.const + wb * b.const)
@@ -340,24 +377,70 @@ class _Evaluator:
             pixels = (tex.pixels * (wt * tex.const).astype(np.float32)
                       + (wo * other.const).astype(np.float32))
             key = f"{tex.digest}*{wt * tex.const}+{wo * other.const}"
-            return _Color(np.ones(3), pixels, tex.node, _hash(key))
+            return _Color(np.ones(3), pixels, tex.node, _hash(key), uv=tex.uv)
         keep, drop, wk, wd = (a, b, wa, wb) if a.attr is not None else (b, a, wb, wa)
         self.note(f"colour attribute '{keep.attr or 'render'}' mixed with another input: "
                   "the other input's mean added to its weight")
         scale = wk + wd * float(np.mean(drop.mean()))
-        return _Color(keep.const * scale, keep.pixels, keep.node, keep.digest, keep.attr)
+        return _Color(keep.const * scale, keep.pixels, keep.node, keep.digest, keep.attr,
+                      keep.uv)
 
     def product(self, a: _Color, b: _Color) -> _Color:
-        """a x b; a second image or colour attribute is taken at its mean."""
+        """a x b, per texel for two images through one UV map (compose); a second colour
+        attribute, or an image through another UV map, is taken at its mean."""
         if a.pixels is not None and b.pixels is not None:
+            if a.attr is None and b.attr is None:
+                both = self.compose((a, b), lambda x, y: x * y, "a*b")
+                if both is not None:
+                    return both
             self.note(f"two images multiplied: the mean colour of '{b.node.image.name}' used")
             b = _Color(b.mean(), attr=b.attr)
         if a.attr is not None and b.attr is not None:
             self.note("two colour attributes multiplied: the second left out")
-            b = _Color(b.const, b.pixels, b.node, b.digest)
+            b = _Color(b.const, b.pixels, b.node, b.digest, uv=b.uv)
         tex = a if a.pixels is not None else b
         return _Color(a.const * b.const, tex.pixels, tex.node, tex.digest,
-                      a.attr if a.attr is not None else b.attr)
+                      a.attr if a.attr is not None else b.attr, tex.uv)
+
+    def compose(self, parts, fn, what: str) -> _Color | None:
+        """``fn`` of the parts' colours per texel, as one image: the parts that are images are
+        read at the texel centres of the one with the most texels (with their own
+        interpolation and extension), constants broadcast; None where an image reads another
+        UV map or transform, or a part has a colour attribute (the callers fall back to a
+        mean and report it)."""
+        images = [c for c in parts if c.pixels is not None]
+        if not images or any(c.attr is not None for c in parts):
+            return None
+        grid = max(images, key=lambda c: c.pixels.shape[0] * c.pixels.shape[1])
+        if any(not _same_uv(c.uv, grid.uv) for c in images):
+            return None
+        key = _hash(repr([what] + [(c.digest, c.const.tobytes(), getattr(c.node, "name", ""),
+                                    getattr(c.node, "interpolation", ""),
+                                    getattr(c.node, "extension", "")) for c in parts]
+                         + [grid.digest]))
+        pixels = _COMPOSED.get(key)
+        if pixels is None:
+            h, w = grid.pixels.shape[:2]
+            u, v = np.meshgrid((np.arange(w) + 0.5) / w, (np.arange(h) + 0.5) / h)
+            uv = np.stack([u.ravel(), v.ravel()], axis=1)
+
+            def texels(c: _Color) -> np.ndarray:
+                if c.pixels is None:
+                    return np.broadcast_to(c.const.astype(np.float32), (h, w, 3))
+                if c is grid or (c.digest == grid.digest and c.pixels.shape == grid.pixels.shape):
+                    px = c.pixels
+                else:
+                    tex = core.scene.Texture(c.node.image.name, c.pixels, c.node.interpolation,
+                                             c.node.extension)
+                    px = core.scene.textures.sample(tex, uv).reshape(h, w, 3)
+                return px * c.const.astype(np.float32)
+
+            pixels = np.clip(np.nan_to_num(fn(*(texels(c) for c in parts))), 0.0, None)
+            pixels = np.ascontiguousarray(pixels, np.float32)
+            if sum(p.shape[0] * p.shape[1] for p in _COMPOSED.values()) > _CACHE_PIXELS // 4:
+                _COMPOSED.clear()
+            _COMPOSED[key] = pixels
+        return _Color(np.ones(3), pixels, grid.node, key, uv=grid.uv)
 
     # ---------------------------------------------------------------------- colour inputs
 
@@ -399,18 +482,46 @@ class _Evaluator:
         blend = node.blend_type
         if blend not in ("MIX", "MULTIPLY", "ADD"):
             return None
-        f = float(self.value(fac_s, stack))
-        if getattr(node, "clamp_factor", True):
-            f = float(np.clip(f, 0.0, 1.0))
+        clamp = getattr(node, "clamp_factor", True)
         if getattr(node, "clamp_result", False) or getattr(node, "use_clamp", False):
             self.note(f"'{node.name}': Clamp Result not applied")
         a, b = self.color(a_s, stack), self.color(b_s, stack)
+        fac = self.factor_map(fac_s, stack)
+        if fac is not None:  # a factor image: the blend per texel
+            lo, hi = (0.0, 1.0) if clamp else (-np.inf, np.inf)
+            blends = {"MIX": lambda f, x, y: x + f * (y - x), "ADD": lambda f, x, y: x + f * y,
+                      "MULTIPLY": lambda f, x, y: x * (1.0 + f * (y - 1.0))}
+
+            def per_texel(f, x, y, op=blends[blend]):
+                return op(np.clip(f, lo, hi), x, y)
+
+            mixed = self.compose((fac, a, b), per_texel, f"mix {blend} {clamp}")
+            if mixed is not None:
+                return mixed
+        f = float(self.value(fac_s, stack))
+        if clamp:
+            f = float(np.clip(f, 0.0, 1.0))
         if blend == "MIX":
             return self.combine(a, 1.0 - f, b, f)
         if blend == "ADD":
             return self.combine(a, 1.0, b, f)
         # MULTIPLY: a x ((1 - f) + f b)
         return self.product(a, self.combine(_const(np.ones(3)), 1.0 - f, b, f))
+
+    def factor_map(self, socket, stack) -> _Color | None:
+        """A float input read from an image through a UV map, as a grey image (Blender's
+        colour -> float conversion, _LUMA, per texel); None when it is constant or has no such
+        image (value() then gives its mean)."""
+        node, out, _ = self.resolve(socket, stack)
+        if node is None or (node.bl_idname == "ShaderNodeTexImage" and out.name == "Alpha"):
+            return None
+        c = self.color(socket, stack)
+        if c.pixels is None or c.attr is not None or c.uv is None:
+            return None
+        weights = (_LUMA * c.const).astype(np.float32)
+        grey = np.repeat((c.pixels @ weights)[..., None], 3, axis=2)
+        return _Color(np.ones(3), np.ascontiguousarray(grey, np.float32), c.node,
+                      _hash(f"luma {c.digest} {weights.tobytes()}"), uv=c.uv)
 
     def mean(self, socket, stack, what: str) -> np.ndarray:
         """A colour input's mean, reported when it varies over the surface."""
@@ -420,9 +531,10 @@ class _Evaluator:
                       f"({', '.join(f'{v:.3f}' for v in c.mean())}) used")
         return c.mean()
 
-    def value(self, socket, stack=()) -> float:
+    def value(self, socket, stack=(), purpose: str = "") -> float:
         """A float input: its default, a Value/RGB node, or the mean (luminance) of what feeds
-        it, reported when that varies over the surface."""
+        it, reported (with ``purpose``, what the mean is used for) when that varies over the
+        surface."""
         node, out, stack = self.resolve(socket, stack)
         if node is None:
             if out is None:
@@ -434,12 +546,14 @@ class _Evaluator:
         if node.bl_idname == "ShaderNodeTexImage" and out.name == "Alpha":
             alpha = self.image_alpha_mean(node)
             self.note(f"'{socket.name}' driven by the alpha of image "
-                      f"'{getattr(node.image, 'name', '')}': its mean {alpha:.3f} used")
+                      f"'{getattr(node.image, 'name', '')}': its mean {alpha:.3f} used"
+                      + (f" {purpose}" if purpose else ""))
             return alpha
         c = self.color(socket, stack)
         v = float(_LUMA @ c.mean())
         if c.pixels is not None or c.attr is not None:
-            self.note(f"'{socket.name}' varies over the surface: its mean {v:.3f} used")
+            self.note(f"'{socket.name}' varies over the surface: its mean {v:.3f} used"
+                      + (f" {purpose}" if purpose else ""))
         return v
 
     # ---------------------------------------------------------------------------- images
@@ -473,7 +587,7 @@ class _Evaluator:
                       f"'{self.uv[0] or 'render'}' as the first image does")
         elif self.uv is None:
             self.uv = uv
-        return _Color(np.ones(3), rgb, node, digest)
+        return _Color(np.ones(3), rgb, node, digest, uv=uv)
 
     def image_alpha_mean(self, node) -> float:
         if node.image is None:
@@ -566,7 +680,7 @@ def glossy_reflectance(ev: _Evaluator, socket) -> np.ndarray:
     weighted through Mix and Add Shader like the diffuse rule. Dielectric specular layers
     (F0 ~ 0.04) are left out; colours that vary take their mean (reported)."""
     return ev.weighted(socket, lambda node, stack, depth: _glossy_node(ev, node, stack),
-                       np.zeros(3))
+                       np.zeros(3), purpose="for the glossy bounce")
 
 
 def _glossy_node(ev: _Evaluator, node, stack) -> np.ndarray:
@@ -584,7 +698,8 @@ def _glossy_node(ev: _Evaluator, node, stack) -> np.ndarray:
                            ev.mean(inp["Edge Tint"], stack, "edge tint"))
     if kind != "ShaderNodeBsdfPrincipled":
         return zero
-    metallic = float(np.clip(ev.value(inp["Metallic"], stack), 0.0, 1.0))
+    metallic = float(np.clip(ev.value(inp["Metallic"], stack, "for the glossy bounce"), 0.0,
+                             1.0))
     if metallic == 0:
         return zero
     alpha = float(np.clip(ev.value(inp["Alpha"], stack), 0.0, 1.0)) if "Alpha" in inp else 1.0
@@ -699,7 +814,8 @@ def material_info(mat) -> MaterialInfo:
         m.texture = core.scene.Texture(
             name=node.image.name, pixels=np.ascontiguousarray(diffuse.pixels, np.float32),
             interpolation=node.interpolation, extension=node.extension, digest=diffuse.digest)
-        info.uv_map, info.uv_transform = ev.uv if ev.uv is not None else ("", None)
+        uv = diffuse.uv or ev.uv
+        info.uv_map, info.uv_transform = uv if uv is not None else ("", None)
     props = getattr(mat, "lpv", None)
     if props is not None and hasattr(props, "bleed_intensity"):
         if props.use_bleed_color:
