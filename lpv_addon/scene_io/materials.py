@@ -427,8 +427,9 @@ class _Evaluator:
             def texels(c: _Color) -> np.ndarray:
                 if c.pixels is None:
                     return np.broadcast_to(c.const.astype(np.float32), (h, w, 3))
-                if c is grid or (c.digest == grid.digest and c.pixels.shape == grid.pixels.shape):
-                    px = c.pixels
+                if c is grid or (c.pixels.shape == grid.pixels.shape
+                                 and c.node.interpolation in ("Closest", "Linear")):
+                    px = c.pixels  # read at its own texel centres: its texels
                 else:
                     tex = core.scene.Texture(c.node.image.name, c.pixels, c.node.interpolation,
                                              c.node.extension)
