@@ -103,7 +103,8 @@ def surfels(positions: np.ndarray, spacing: float, with_index: bool = False):
     sub-triangles.
     """
     sub, index, normal, area = _subdivide(positions, spacing)
-    result = (sub.mean(axis=1), normal, area)
+    # mean(axis=1)'s bits without its reduction machinery (dearer than the sum itself)
+    result = ((sub[:, 0] + sub[:, 1] + sub[:, 2]) / 3.0, normal, area)
     return result + (index,) if with_index else result
 
 

@@ -195,18 +195,21 @@ def propagate(engine, scene, src: Source, run, bounds, stats) -> list:
     tol = 1e-6 * max(float(np.max(hi - lo)), 1e-30)
     ahead = pos2 + nrm2 * tol
     flat = (hi - lo) <= 2 * tol
-    inside = np.all(flat | ((ahead >= lo) & (ahead <= hi)), axis=1)
-    e = np.zeros((len(pos2), 3))
-    if inside.any():
-        e[inside] = direct(engine, scene, bounds, pos2[inside], nrm2[inside], stats,
-                           material=src.material if src.kind == "emission" else -1,
-                           world=src.kind == "world", gi=True)
-    flux = e * np.concatenate([area, area])[:, None] * np.concatenate([refl, refl])
-    keep = inside & (flux.max(axis=1) > 0)
+    ok = flat | ((ahead >= lo) & (ahead <= hi))
+    inside = np.nonzero(ok[:, 0] & ok[:, 1] & ok[:, 2])[0]  # the sides lit, in order
+    pos2, nrm2 = pos2[inside], nrm2[inside]
+    e = np.zeros((0, 3))
+    if inside.size:
+        e = direct(engine, scene, bounds, pos2, nrm2, stats,
+                   material=src.material if src.kind == "emission" else -1,
+                   world=src.kind == "world", gi=True)
+    side = inside % max(len(pos), 1)  # each side's surfel
+    flux = e * area[side][:, None] * refl[side]
+    keep = np.maximum(np.maximum(flux[:, 0], flux[:, 1]), flux[:, 2]) > 0
     stats.add_ms("sources", time.perf_counter() - t0)
     stats.info.setdefault("source_flux", {})[src.name] = float(flux[keep].sum())
     if not keep.any():
-        seen = bool((inside & (e.max(axis=1) > 0)).any())
+        seen = bool((e > 0).any())
         stats.skip("sources", f"GI of {src.name}",
                    "no caster it lights inside the LPV" if seen else
                    "no surface inside the LPV sees it (every surfel's visibility is 0)")

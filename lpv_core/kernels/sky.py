@@ -33,57 +33,86 @@ def _sky_kernel(pos, nrm, dirs, weights, rad, views, half, depths, pcf, first_hi
                 m0, m1):  # pragma: no cover
     """Points m0..m1-1: den = sum_k w_k c_k, e = sum_k w_k c_k V_k L_k, out = pi e / den
     (c_k = max(0, n.w_k)); direction by direction, so that one map at a time is read (twice
-    as fast as point by point through all 64 maps, docs/decisions.md)."""
+    as fast as point by point through all 64 maps, docs/decisions.md), over runs of points
+    with one normal (a surface's surfels): c_k, the normal's view terms and den once a run."""
     k_count, res = dirs.shape[0], depths.shape[1]
-    den = np.zeros(m1 - m0)
+    starts = _normal_runs(nrm, m0, m1)
+    runs = starts.size - 1
+    den = np.zeros(runs)
     out[m0:m1] = 0.0
     for k in range(k_count):
         dark = rad[k, 0] == 0.0 and rad[k, 1] == 0.0 and rad[k, 2] == 0.0
-        world = 2.0 * half[k] / res  # a texel; render/direct.py's offset and bias: 1.5 of them
+        hk = half[k]
+        world = 2.0 * hk / res  # a texel; render/direct.py's offset and bias: 1.5 of them
         eps, off, lim = first_hit * world, 1.5 * world, 1.0 + 2.0 / res
-        v = views[k]
-        for m in range(m0, m1):
-            nx, ny, nz = nrm[m, 0], nrm[m, 1], nrm[m, 2]
+        v, dep = views[k], depths[k]
+        v00, v01, v02, v03 = v[0, 0], v[0, 1], v[0, 2], v[0, 3]
+        v10, v11, v12, v13 = v[1, 0], v[1, 1], v[1, 2], v[1, 3]
+        v20, v21, v22, v23 = v[2, 0], v[2, 1], v[2, 2], v[2, 3]
+        for r in range(runs):
+            a = starts[r]
+            nx, ny, nz = nrm[a, 0], nrm[a, 1], nrm[a, 2]
             c = nx * dirs[k, 0] + ny * dirs[k, 1] + nz * dirs[k, 2]
             if c <= 0.0:
                 continue
-            den[m - m0] += weights[k] * c
+            den[r] += weights[k] * c
             if dark:
                 continue
             if pcf:
-                ox, oy, oz = (pos[m, 0] + nx * world * 1.5, pos[m, 1] + ny * world * 1.5,
-                              pos[m, 2] + nz * world * 1.5)
-                d = -(v[2, 0] * ox + v[2, 1] * oy + v[2, 2] * oz + v[2, 3])
-                vis = _pcf(v, True, half[k], depths[k], res, ox, oy, oz, d, world * 1.5)
-            else:  # sky._one_tap: the offset, biased test, then the first-hit test
+                for m in range(a, starts[r + 1]):
+                    ox, oy, oz = (pos[m, 0] + nx * world * 1.5, pos[m, 1] + ny * world * 1.5,
+                                  pos[m, 2] + nz * world * 1.5)
+                    d = -(v20 * ox + v21 * oy + v22 * oz + v23)
+                    vis = _pcf(v, True, hk, dep, res, ox, oy, oz, d, world * 1.5)
+                    s = weights[k] * c * vis
+                    out[m, 0] += s * rad[k, 0]
+                    out[m, 1] += s * rad[k, 1]
+                    out[m, 2] += s * rad[k, 2]
+                continue
+            # sky._one_tap: the offset, biased test, then the first-hit test
+            mx = nx * v00 + ny * v01 + nz * v02
+            my = nx * v10 + ny * v11 + nz * v12
+            mz = nx * v20 + ny * v21 + nz * v22
+            s = weights[k] * c
+            s0, s1, s2 = s * rad[k, 0], s * rad[k, 1], s * rad[k, 2]
+            for m in range(a, starts[r + 1]):
                 px, py, pz = pos[m, 0], pos[m, 1], pos[m, 2]
-                qx = px * v[0, 0] + py * v[0, 1] + pz * v[0, 2] + v[0, 3]
-                qy = px * v[1, 0] + py * v[1, 1] + pz * v[1, 2] + v[1, 3]
-                qz = px * v[2, 0] + py * v[2, 1] + pz * v[2, 2] + v[2, 3]
-                mx = nx * v[0, 0] + ny * v[0, 1] + nz * v[0, 2]
-                my = nx * v[1, 0] + ny * v[1, 1] + nz * v[1, 2]
-                mz = nx * v[2, 0] + ny * v[2, 1] + nz * v[2, 2]
-                u, w = (qx + off * mx) / half[k], (qy + off * my) / half[k]
-                vis = 1.0
+                qx = px * v00 + py * v01 + pz * v02 + v03
+                qy = px * v10 + py * v11 + pz * v12 + v13
+                qz = px * v20 + py * v21 + pz * v22 + v23
+                u, w = (qx + off * mx) / hk, (qy + off * my) / hk
                 if abs(u) <= 1.0 and abs(w) <= 1.0:
                     x = min(int((u + 1.0) * 0.5 * res), res - 1)
                     y = min(int((1.0 - w) * 0.5 * res), res - 1)
-                    if -(qz + off * mz) > depths[k, y, x] + off:
-                        vis = 0.0
-                u, w = qx / half[k], qy / half[k]
-                if vis > 0.0 and abs(u) <= lim and abs(w) <= lim:
+                    if -(qz + off * mz) > dep[y, x] + off:
+                        continue
+                u, w = qx / hk, qy / hk
+                if abs(u) <= lim and abs(w) <= lim:
                     x = min(max(int((u + 1.0) * 0.5 * res), 0), res - 1)
                     y = min(max(int((1.0 - w) * 0.5 * res), 0), res - 1)
-                    cx = ((x + 0.5) * 2.0 / res - 1.0) * half[k]
-                    cy = (1.0 - (y + 0.5) * 2.0 / res) * half[k]
+                    cx = ((x + 0.5) * 2.0 / res - 1.0) * hk
+                    cy = (1.0 - (y + 0.5) * 2.0 / res) * hk
                     plane = (mx * (cx - qx) + my * (cy - qy)) / max(mz, 1e-12) - qz
-                    if depths[k, y, x] < plane - eps:
-                        vis = 0.0
-            s = weights[k] * c * vis
-            out[m, 0] += s * rad[k, 0]
-            out[m, 1] += s * rad[k, 1]
-            out[m, 2] += s * rad[k, 2]
-    for m in range(m0, m1):
-        f = np.pi / den[m - m0] if den[m - m0] > 0.0 else 0.0
-        out[m, 0], out[m, 1], out[m, 2] = out[m, 0] * f, out[m, 1] * f, out[m, 2] * f
+                    if dep[y, x] < plane - eps:
+                        continue
+                out[m, 0] += s0
+                out[m, 1] += s1
+                out[m, 2] += s2
+    for r in range(runs):
+        f = np.pi / den[r] if den[r] > 0.0 else 0.0
+        for m in range(starts[r], starts[r + 1]):
+            out[m, 0], out[m, 1], out[m, 2] = out[m, 0] * f, out[m, 1] * f, out[m, 2] * f
 
+
+@jit.kernel
+def _normal_runs(nrm, m0, m1):  # pragma: no cover
+    """Where each run of equal normals among points m0..m1-1 starts, then m1 (runs + 1,)."""
+    starts = np.empty(m1 - m0 + 1, np.int64)
+    n = 0
+    for m in range(m0, m1):
+        if (m == m0 or nrm[m, 0] != nrm[m - 1, 0] or nrm[m, 1] != nrm[m - 1, 1]
+                or nrm[m, 2] != nrm[m - 1, 2]):
+            starts[n] = m
+            n += 1
+    starts[n] = m1
+    return starts[:n + 1].copy()

@@ -2,7 +2,10 @@
 triangles is drawn with view i into tile i of one float32 atlas, clipped to it (the World's
 64 or 128 directions; one pass per map of four RGBA32F targets cost ~1.4 ms each on llvmpipe).
 Each tile holds -(view @ p).z of the nearest occluder, inf where nothing was hit, the same
-float32 expression render/direct.render_shadow_map takes from the positions it reads back."""
+float32 expression render/direct.render_shadow_map takes from the positions it reads back;
+the nearest is kept by blending with GL_MIN, not by a depth test: the least of those float32
+values exactly (a fixed-point depth buffer kept a farther one where surfaces meet), and no
+depth buffer to clear and test."""
 
 from __future__ import annotations
 
@@ -72,12 +75,11 @@ class DepthAtlas:
             if self._fbo is not None:
                 self._fbo[1].release()
             self._fbo = (big, ctx.framebuffer(
-                color_attachments=[ctx.texture(big, 1, dtype="f4")],
-                depth_attachment=ctx.depth_renderbuffer(big)))
+                color_attachments=[ctx.texture(big, 1, dtype="f4")]))
         fbo = self._fbo[1]
         fbo.use()
         fbo.viewport = (0, 0, *size)
-        fbo.clear(np.inf, depth=1.0, viewport=fbo.viewport)
+        fbo.clear(np.inf, viewport=fbo.viewport)
         vbo = raster._vbo
         if vbo is not None and k:
             shift = np.eye(4)
@@ -93,13 +95,17 @@ class DepthAtlas:
                                                   (buf, "4f 4f 4f 4f 4f 2f/i", "c0", "c1",
                                                    "c2", "c3", "row", "tile")])
             self.program["tiles"].value = (float(nx), float(ny))
-            ctx.enable(moderngl.DEPTH_TEST)
+            ctx.disable(moderngl.DEPTH_TEST)
             ctx.disable(moderngl.CULL_FACE)
+            ctx.enable(moderngl.BLEND)
+            ctx.blend_equation = moderngl.MIN  # (the blend factors do not apply to MIN)
             for i in range(4):
                 ctx.enable_direct(_CLIP_DISTANCE0 + i)
             vao.render(instances=k)
             for i in range(4):
                 ctx.disable_direct(_CLIP_DISTANCE0 + i)
+            ctx.blend_equation = moderngl.FUNC_ADD
+            ctx.disable(moderngl.BLEND)
             vao.release()
             buf.release()
         out = np.empty((nx * ny, resolution, resolution), np.float32)
