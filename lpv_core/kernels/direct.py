@@ -5,8 +5,6 @@ one pass per point, in the same float64 arithmetic as the numpy code."""
 
 from __future__ import annotations
 
-import itertools
-
 import numpy as np
 
 from ..runtime import jit, pool
@@ -78,22 +76,12 @@ def irradiance(light: Light, positions: np.ndarray, normals: np.ndarray,
             float(light.power), cos_half, smooth, polys, radiance, tan_half, norm,
             *_shadow_args(shadow, src, light), pos, nrm, out)
     soft = shadow is not None and src is not None and src.kind != HARD
-    _in_parts(lambda sl: _direct_kernel(*args, sl.start, sl.stop), pos.shape[0],
-              8 if soft else 1)
+    # soft shadows make some rows of the frame many times dearer than others (in halves
+    # one thread idled: the Cornell box's spot frame's halves took 1.7 and 20 ms); a hard
+    # light takes one part per thread (a kernel call costs ~30 us)
+    pool.in_parts(lambda sl: _direct_kernel(*args, sl.start, sl.stop), pos.shape[0],
+                  8 if soft else 1)
     return out[:, None] * color
-
-
-def _in_parts(run, n: int, parts: int = 8, smallest: int = 4096) -> None:
-    """run(slice) over 0..n in ``parts`` parts per pool thread (pool.in_halves' rule
-    otherwise): soft shadows make some rows of the frame many times dearer than others
-    (halves left a thread idle: the two halves of the Cornell box's spot light frame took 1.7
-    and 20 ms); a hard light takes 1 (a kernel call costs ~30 us)."""
-    if n < smallest:
-        run(slice(0, n))
-        return
-    edges = np.linspace(0, n, parts * pool.workers() + 1).astype(np.int64)
-    for _ in pool.executor().map(run, [slice(a, b) for a, b in itertools.pairwise(edges)]):
-        pass
 
 
 def visibility(shadow, src, positions: np.ndarray, normals: np.ndarray) -> np.ndarray:
@@ -104,7 +92,7 @@ def visibility(shadow, src, positions: np.ndarray, normals: np.ndarray) -> np.nd
     out = np.empty(pos.shape[0], np.float64)
     args = (np.asarray(light.position, np.float64), *_shadow_args(shadow, src, light),
             pos, nrm, out)
-    _in_parts(lambda sl: _visibility_kernel(*args, sl.start, sl.stop), pos.shape[0],
+    pool.in_parts(lambda sl: _visibility_kernel(*args, sl.start, sl.stop), pos.shape[0],
               8 if src.kind != HARD else 1)
     return out
 
@@ -117,7 +105,7 @@ def pyramid_blocks(view, depth: np.ndarray, eye: np.ndarray, b: int) -> np.ndarr
     args = (np.asarray(view.view, np.float64), bool(view.ortho),
             float(view.half_extent if view.ortho else view.tan_half), eye,
             np.ascontiguousarray(depth, np.float32), b, out)
-    _in_parts(lambda sl: _blocks_kernel(*args, sl.start, sl.stop), out.shape[0], 1, 1)
+    pool.in_parts(lambda sl: _blocks_kernel(*args, sl.start, sl.stop), out.shape[0], 1, 1)
     return out
 
 

@@ -16,9 +16,9 @@ def gap_corrected(grid: Grid, positions: np.ndarray, gaps: np.ndarray) -> np.nda
     """lookup.gap_corrected of float64 points (M >= 1, 3) and ``gaps`` by ``_gap_kernel``."""
     out = np.empty_like(positions)
     g, q = np.ascontiguousarray(gaps), np.ascontiguousarray(positions)
-    pool.in_halves(lambda sl: _gap_kernel(grid.origin_array, float(grid.cell_size),
-                                          grid.resolution, g, q, out, sl.start, sl.stop),
-                   q.shape[0])
+    pool.in_parts(lambda sl: _gap_kernel(grid.origin_array, float(grid.cell_size),
+                                         grid.resolution, g, q, out, sl.start, sl.stop),
+                  q.shape[0])
     return out
 
 
@@ -37,7 +37,7 @@ def irradiance(grid: Grid, values: np.ndarray, positions: np.ndarray, normals: n
                       + [sh.IRRADIANCE_KERNEL[2]] * 5)
     pos, nrm = np.ascontiguousarray(positions), np.ascontiguousarray(normals)
     out = np.empty((pos.shape[0], 3), np.float64)
-    pool.in_halves(lambda sl: _irradiance_kernel(
+    pool.in_parts(lambda sl: _irradiance_kernel(
         grid.origin_array, float(grid.cell_size), r, flat, vis, kernel, pos, nrm,
         float(offset_cells), out, sl.start, sl.stop), pos.shape[0])
     return out

@@ -109,7 +109,7 @@ def _emission_weights_kernel(dirs, r, vx, vy, vz, rr, hi, w):  # pragma: no cove
 
 
 def unfold_rows_at(cells, rows, dest, dirs, out, base=None) -> None:
-    """_unfold_kernel over ``rows`` in two halves on the pool's threads (each writes its own
+    """_unfold_kernel over ``rows`` in parts on the pool's threads (each writes its own
     columns ``dest`` of ``out``): what unfold, the launch and the octant sweep run. ``base``:
     where each direction's values start in ``out`` flattened (default: its row of a
     (q, columns) array)."""
@@ -118,10 +118,8 @@ def unfold_rows_at(cells, rows, dest, dirs, out, base=None) -> None:
     flat = out.reshape(-1)
     if out.size and not np.shares_memory(flat, out):
         raise ValueError("unfold_rows_at needs a contiguous out array")
-    h = rows.size // 2
-    for _ in pool.executor().map(lambda sl: _unfold_kernel(cells, rows[sl], dest[sl], dirs, flat, base),
-                         (slice(0, h), slice(h, None))):
-        pass
+    pool.in_parts(lambda sl: _unfold_kernel(cells, rows[sl], dest[sl], dirs, flat, base),
+                  rows.size, smallest=0)
 
 
 @jit.kernel
@@ -189,15 +187,14 @@ def _launch_direction_kernel(flux, m, start, dirs, vis, p, out, j):  # pragma: n
 
 def launch(injected: np.ndarray, offset_visibility: list | None = None) -> np.ndarray:
     """ordinates.launch compiled: the lit cells' unfold (_unfold_kernel, those cells only) and
-    one scatter loop (_launch_kernel), each in two halves on the pool's threads."""
+    one scatter loop (_launch_kernel), each in parts on the pool's threads."""
     dirs, _, _ = tables()
     q = len(dirs)
     p = injected.shape[0] + 2
     out = np.zeros((q, 3, p**3), np.float32)
     inputs = launch_inputs(injected, offset_visibility)
-    halves = ((0, q // 2), (q // 2, q))  # disjoint directions: no shared writes
-    for _ in pool.executor().map(lambda js: _launch_kernel(*inputs, p, out, *js), halves):
-        pass
+    # parts of the directions on the pool's threads: disjoint, no shared writes
+    pool.in_parts(lambda sl: _launch_kernel(*inputs, p, out, sl.start, sl.stop), q, smallest=0)
     return out
 
 
@@ -306,6 +303,7 @@ def add_emission_band2(values: np.ndarray, injected: np.ndarray) -> None:
     out = values.reshape(-1, sh.BANDS2)
     if not np.shares_memory(out, values):
         raise ValueError("add_emission_band2 needs a contiguous values array")
-    # rows are independent: two halves on the pool, the same bits
-    pool.in_halves(lambda sl: _emission_band2_kernel(c[sl], out[sl]), c.shape[0], 8192)
+    # rows are independent: parts on the pool's threads, the same bits
+    pool.in_parts(lambda sl: _emission_band2_kernel(c[sl], out[sl]), c.shape[0],
+                  smallest=8192)
 

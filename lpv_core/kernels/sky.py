@@ -24,7 +24,7 @@ def irradiance(directions, weights, radiance, views, half, depths, positions, no
             np.ascontiguousarray(radiance, np.float64),
             np.ascontiguousarray(views, np.float64), np.ascontiguousarray(half, np.float64),
             depths, bool(pcf), float(first_hit), out)
-    pool.in_halves(lambda sl: _sky_kernel(*args, sl.start, sl.stop), pos.shape[0])
+    pool.in_parts(lambda sl: _sky_kernel(*args, sl.start, sl.stop), pos.shape[0])
     return out
 
 

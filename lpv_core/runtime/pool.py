@@ -1,11 +1,14 @@
 """The core's worker threads: one pool shared by every stage whose compiled kernels or numpy
-loops release the GIL and write disjoint parts (the octants of a propagation step, halves of a
+loops release the GIL and write disjoint parts (the octants of a propagation step, parts of a
 lookup, RSM rows, injection slabs, geometry-volume chunks)."""
 
 from __future__ import annotations
 
+import itertools
 import os
 from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
 
 _POOL: list = []  # [ThreadPoolExecutor] once created
 
@@ -22,12 +25,15 @@ def executor() -> ThreadPoolExecutor:
     return _POOL[0]
 
 
-def in_halves(run, n: int, smallest: int = 4096) -> None:
-    """run(slice) over 0..n: below ``smallest`` in one call here, else in two halves on the
-    pool's threads (for kernels that release the GIL and write disjoint parts); iterating
-    re-raises a half's exception here."""
+def in_parts(run, n: int, per_worker: int = 1, smallest: int = 4096) -> None:
+    """run(slice) over 0..n: below ``smallest`` in one call here, else in ``per_worker``
+    contiguous parts per pool thread (for kernels that release the GIL and write disjoint
+    parts; more than one where some rows cost many times others, as soft shadows' do);
+    iterating re-raises a part's exception here."""
     if n < smallest:
         run(slice(0, n))
         return
-    for _ in executor().map(run, (slice(0, n // 2), slice(n // 2, n))):
+    edges = np.linspace(0, n, max(1, per_worker) * workers() + 1).astype(np.int64)
+    for _ in executor().map(run, [slice(a, b) for a, b in itertools.pairwise(edges)
+                                  if b > a]):
         pass
