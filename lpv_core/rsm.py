@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import mirror_lobe
 from .kernels import rsm as _compiled
 from .render.raster import Rasterizer
 from .runtime import jit
@@ -112,12 +113,15 @@ def view_vpls(light: Light, view: lights_mod.LightView, p4, n4, reflectance, ori
 
 def mirror_vpls(position, normal, incoming, flux, area) -> tuple:
     """The glossy bounce as VPLs (position, normal, flux, area, lift): at each surface point
-    (normal facing the light), flux ``flux`` (incident x glossy reflectance) leaving along the
-    mirror direction of the unit ``incoming`` direction; the VPL's normal is that direction,
-    so injection's cosine lobe around it carries exactly ``flux`` (a wider lobe than a glossy
-    one: docs/algorithm.md). Its lift (normal less axis) puts its injection offset along the
-    surface normal, as a diffuse VPL's: along the axis it would cross a floor under a wall."""
+    (normal facing the light), flux ``flux`` (incident x glossy reflectance) leaving around the
+    mirror direction of the unit ``incoming`` direction; the VPL's normal is the axis of
+    injection's cosine lobe (a wider lobe than a glossy one: docs/algorithm.md), which
+    carries exactly ``flux``: that lobe's part above the surface (mirror_lobe.above). Its
+    lift (normal less axis) puts its injection offset along the surface normal, as a diffuse
+    VPL's: along the axis it would cross a floor under a wall."""
     dn = np.einsum("nc,nc->n", incoming, normal)
-    axis = incoming - 2.0 * dn[:, None] * normal
     keep = (dn < 0) & (flux.max(axis=-1) > 0) & np.isfinite(flux).all(axis=-1)
-    return position[keep], axis[keep], flux[keep], area[keep], (normal - axis)[keep]
+    normal = normal[keep]
+    axis = mirror_lobe.above(incoming[keep] - 2.0 * dn[keep, None] * normal, normal)
+    return position[keep], axis, flux[keep], area[keep], normal - axis
+

@@ -37,6 +37,7 @@ SCENE = "checker_room"
 EDGE_DISTANCE = 0.15  # m; well above the neighbour spacing on the floor at this resolution
 EDGE_COS = 0.95
 METAL_BOX = ((0.4, -0.2, 0.0), (1.2, 0.6, 0.8))  # tools.scenes.checker_room's Metal block
+WALLS = 2.0  # and its walls, at x = 2 and y = 2
 COLOUR_STEP = 0.05  # well above Cycles' Diffuse Color noise, well below a checker step (0.6)
 LIMITS = {"color": 0.02, "indirect": 0.30}
 
@@ -74,10 +75,10 @@ def colour_edges(color: np.ndarray, step: float = COLOUR_STEP) -> np.ndarray:
     return edge
 
 
-def black_metal_indirect(blend: Path, cache: Path, samples: int, raster, engine) -> float:
+def black_metal_indirect(blend: Path, cache: Path, samples: int, raster, engine) -> tuple:
     """Indirect rel. RMSE with the metallic block's surface swapped for a black Diffuse BSDF
     in both renderers (on the opened .blend, not saved): what LPV scores when the light the
-    metal reflects is out of Cycles' reference too."""
+    metal reflects is out of Cycles' reference too; and that reference's indirect term."""
     import bpy
 
     from lpv_addon.render import cycles
@@ -96,7 +97,8 @@ def black_metal_indirect(blend: Path, cache: Path, samples: int, raster, engine)
     core_scene = extract_scene(bpy.context.evaluated_depsgraph_get(), bpy.context.scene,
                                RESOLUTION)
     run = report.run_lpv(core_scene, dataclasses.replace(core_scene.settings), engine, 1)
-    return relative_rmse(indirect_term(run["passes"]), indirect_term(report._read_exr(str(exr))))
+    ref = indirect_term(report._read_exr(str(exr)))
+    return relative_rmse(indirect_term(run["passes"]), ref), ref
 
 
 def reference_noise(blend: Path, cache: Path, samples: int, ref_indirect: np.ndarray) -> float:
@@ -150,12 +152,21 @@ def measure(cache: Path, samples: int) -> dict:
     bare = dataclasses.replace(core_scene, materials=[
         dataclasses.replace(m, specular=np.zeros(3, np.float32)) for m in core_scene.materials])
     no_glossy = report.run_lpv(bare, dataclasses.replace(bare.settings), engine, 1)["passes"]
-    black = black_metal_indirect(blend, cache, samples, raster, engine)
+    black, black_ref = black_metal_indirect(blend, cache, samples, raster, engine)
+    # the metal's reflected light per surface: LPV with and without its mirror VPLs, Cycles
+    # with the metal and with it black
+    ours_metal = (indirect_term(test) - indirect_term(no_glossy)).sum(-1)
+    cycles_metal = (indirect_term(ref) - black_ref).sum(-1)
+    with np.errstate(invalid="ignore"):
+        walls = keep & (P[..., :2] > WALLS - 1e-3).any(-1)
+        floor = keep & (P[..., 2] < 1e-3) & ~metal
+    metal_light = {name: (float(ours_metal[m].sum()), float(cycles_metal[m].sum()))
+                   for name, m in (("floor", floor), ("walls", walls))}
     noise = reference_noise(blend, cache, samples, indirect_term(ref))
     indirect = relative_rmse(indirect_term(test), indirect_term(ref))
     return {
         "reference_noise": noise, "indirect_denoised": report.denoised(indirect, noise),
-        "black_metal_indirect": black,
+        "black_metal_indirect": black, "metal_light": metal_light,
         "no_glossy_indirect": relative_rmse(indirect_term(no_glossy), indirect_term(ref)),
         "samples": samples, "kept": int(keep.sum()), "pixels": int(keep.size),
         "color": relative_rmse(ours[keep], cyc[keep]),
@@ -218,9 +229,12 @@ def write(r: dict, out: Path, argv: list[str]) -> None:
         "",
         ("Where the indirect error is: with the metal block black in both renderers it is "
          "the black-metal row, the diffuse LPV error of this scene; the metal's reflected "
-         "light (paths light -> metal -> floor) adds the rest: the mirror VPLs' cosine lobe is "
-         "wider than the roughness-0.3 GGX lobe, so light Cycles' block top reflects out over "
-         "the walls partly lands on them (docs/decisions.md, Glossy bounce)."),
+         "light (paths light -> metal -> floor) adds the rest: the mirror VPLs' lobe (the "
+         "cosine lobe's part above the surface, mirror_lobe) is wider than the roughness-0.3 "
+         "GGX lobe, so light Cycles' block top reflects out over the walls partly lands on "
+         "them. The metal's light (sum of the indirect term, LPV / Cycles): "
+         + ", ".join(f"{k} {a:.0f} / {b:.0f}" for k, (a, b) in r["metal_light"].items())
+         + " (docs/decisions.md, Glossy bounce)."),
     ]
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text("\n".join(lines) + "\n")

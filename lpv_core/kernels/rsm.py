@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .. import mirror_lobe
 from ..render.raster import TRIANGLE_SPLIT
 from ..runtime import jit, pool
 from ..scene import lights as lights_mod
@@ -56,9 +57,13 @@ def view_vpls(light: Light, view: lights_mod.LightView, p4, n4, reflectance, ori
 
 def _joined(out: tuple, n: int, k: int, glossy: bool) -> tuple:
     """The first ``n`` VPLs of out[:4], then (glossy) the first ``k`` mirror VPLs of out[4:8]
-    and the lift (rsm.view_vpls)."""
+    and the lift (rsm.view_vpls), the kernel's mirror directions turned into their lobes'
+    axes (mirror_lobe.above, as rsm.mirror_vpls)."""
     if not glossy:
         return tuple(a[:n] for a in out[:4])
+    surface = out[5][:k] + out[8][:k]  # the kernel's lift: normal less mirror direction
+    out[5][:k] = mirror_lobe.above(out[5][:k], surface)
+    out[8][:k] = surface - out[5][:k]
     return tuple(np.concatenate((a[:n], b[:k])) for a, b in
                  zip((*out[:4], np.zeros((n, 3))), out[4:]))
 
