@@ -22,6 +22,10 @@ from .scene.world import World
 # (docs/decisions.md: HDR-FLIP of Combined 0.40 with 64, 0.28 with 128, 0.22 with 256).
 DIRECTIONS = 64
 RENDER_DIRECTIONS = 128
+# Antialias samples take turns over up to this many sets of the pixels' directions
+# (render_directions): a pixel's mean integrates the sky over RENDER_DIRECTIONS x RENDER_SETS
+# directions (sky_room's HDR-FLIP 0.244 -> 0.134, docs/decisions.md), for 4 x 32 MiB of maps
+RENDER_SETS = 4
 SHADOW_RESOLUTION = 256  # texels per side of each direction's map (64 maps: 16 MiB, 128: 32 MiB)
 # The GI's surfels: a surface in front of a surfel's plane by more than this share of a texel
 # hides the sky (depths and planes are exact to float32; a thinner layer is below the map)
@@ -57,9 +61,24 @@ def map_directions(height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
     return dirs, np.ascontiguousarray(np.broadcast_to(solid, (height, width)))
 
 
-def cells(world: World, k: int | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def render_directions(index: int = 0, sets: int = 1) -> np.ndarray:
+    """Set ``index`` of ``sets`` sets of the pixels' directions: the RENDER_DIRECTIONS
+    Fibonacci sphere turned about its pole by index / sets of its spiral's azimuth step (the
+    golden angle), so the sets' spirals interleave: each set as evenly spread as the base one
+    (its largest gap 13.5 deg), four together leave 9.2 deg (the 512-direction sphere 6.8)."""
+    t = (index % max(sets, 1)) / max(sets, 1) * np.pi * (3.0 - np.sqrt(5.0))
+    c, s = np.cos(t), np.sin(t)
+    return quadrature_directions(RENDER_DIRECTIONS) @ np.array([[c, s, 0.0], [-s, c, 0.0],
+                                                                [0.0, 0.0, 1.0]])
+
+
+
+
+def cells(world: World, k: int | None = None,
+          directions: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(directions (K, 3), solid angles w_k (K,), radiance (K, 3)): the World's map averaged
-    over each direction's cell (the map texels nearest to it), weighted by texel solid angle."""
+    over each direction's cell (the map texels nearest to it), weighted by texel solid angle;
+    the ``k`` quadrature directions, or the given ``directions``."""
     r = np.asarray(world.radiance, np.float64).reshape(
         np.shape(world.radiance)[0], np.shape(world.radiance)[1], 3)
     h, w = r.shape[:2]
@@ -74,8 +93,9 @@ def cells(world: World, k: int | None = None) -> tuple[np.ndarray, np.ndarray, n
     rep = max(1, -(-MIN_MAP_SIDE // w))  # nearest-texel upsampling of a small map
     r = np.repeat(np.repeat(r, rep, axis=0), rep, axis=1)
     dirs, solid = map_directions(*r.shape[:2])
-    k = k or DIRECTIONS
-    ks = quadrature_directions(k)
+    ks = quadrature_directions(k or DIRECTIONS) if directions is None else np.asarray(
+        directions, np.float64)
+    k = len(ks)
     near = np.argmax(dirs.reshape(-1, 3) @ ks.T, axis=1)
     sa = solid.reshape(-1)
     weight = np.bincount(near, sa, minlength=k)
@@ -108,7 +128,7 @@ def suns(directions: np.ndarray) -> list[Light]:
     key = np.asarray(directions, np.float64).tobytes()
     if key in _SUNS:
         return _SUNS[key]
-    out = _SUNS.setdefault(key, []) if len(_SUNS) < 8 else []
+    out = _SUNS.setdefault(key, []) if len(_SUNS) < 2 * (1 + RENDER_SETS) else []
     for i, d in enumerate(directions):
         z = np.asarray(d, np.float64)
         x = np.cross([0.0, 0.0, 1.0] if abs(z[2]) < 0.9 else [0.0, 1.0, 0.0], z)
@@ -128,11 +148,12 @@ def shadow_maps(atlas, lights: list, bounds, fit, res: int) -> list:
     key = tuple(np.asarray(b, np.float64).tobytes() for b in (*bounds, *fit))
     held = [v for ls, k, v in _VIEWS if ls is lights and k == key]
     views = held[0] if held else [light_views(s, bounds, fit)[0] for s in lights]
-    _VIEWS[:] = [(lights, key, views), *(e for e in _VIEWS if e[2] is not views)][:2]
+    _VIEWS[:] = [(lights, key, views),
+                 *(e for e in _VIEWS if e[2] is not views)][:1 + RENDER_SETS]
     stack = atlas.render(views, res)
     maps = [ShadowMap(s, [v], [stack[i]], res, stack[i:i + 1])
             for i, (s, v) in enumerate(zip(lights, views))]
-    _STACK[:] = [(maps, stack), *_STACK[:1]]
+    _STACK[:] = [(maps, stack), *_STACK[:RENDER_SETS]]
     return maps
 
 
@@ -194,18 +215,20 @@ def _one_tap(shadow, pos: np.ndarray, nrm: np.ndarray) -> np.ndarray:
     return lit.astype(np.float64)
 
 
-_STACK: list = []  # [(maps list, their depths (K, R, R) float32)]: the last two stacked
+# the last 1 + RENDER_SETS (the GI's and the pixels' sets): [(maps list, their depths (K, R, R)
+# float32)] and [(suns, bounds and window bytes, their views)]
+_STACK: list = []
 _SUNS: dict = {}  # direction set's bytes -> its suns
-_VIEWS: list = []  # [(suns, bounds and window bytes, their views)]: the last two (GI, pixels)
+_VIEWS: list = []
 
 
 def _stacked(maps: list) -> np.ndarray:
-    """The maps' depths as one (K, R, R) float32 array, kept for the last two lists of maps
-    (the GI's and the pixels')."""
+    """The maps' depths as one (K, R, R) float32 array, kept for the last 1 + RENDER_SETS
+    lists of maps (the GI's and the pixels' sets)."""
     for held, stack in _STACK:
         if held is maps:
             return stack
-    _STACK[:] = [(maps, np.stack([m.stacked()[0] for m in maps])), *_STACK[:1]]
+    _STACK[:] = [(maps, np.stack([m.stacked()[0] for m in maps])), *_STACK[:RENDER_SETS]]
     return _STACK[0][1]
 
 

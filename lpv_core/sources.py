@@ -79,12 +79,14 @@ class SourceMaps:
             self.key, self.world, self.clusters = key, {}, None
 
 
-def maps(engine, scene, bounds, stats, k: int | None = None) -> SourceMaps:
+def maps(engine, scene, bounds, stats, k: int | None = None,
+         sky_set: tuple[int, int] = (0, 1)) -> SourceMaps:
     """engine's SourceMaps made current for ``scene`` in ``bounds``: the World's ``k``
-    directions (sky.DIRECTIONS: the GI's; RENDER_DIRECTIONS: the pixels') and their maps (one
-    atlas, render/atlas.py), and the clusters' cube maps (the scene without emitters: they do
-    not shadow themselves), rendered when missing; stats.info["sources"] names what each
-    approximates."""
+    directions (sky.DIRECTIONS: the GI's; RENDER_DIRECTIONS: the pixels', set ``sky_set`` =
+    (index, sets) of sky.render_directions) and their maps (one atlas, render/atlas.py), and
+    the clusters' cube maps (the scene without emitters: they do not shadow themselves),
+    rendered when missing; stats.info["sources"] names what each approximates. SourceMaps.world
+    is keyed by (k, index, sets)."""
     from .render import direct
     from .render.atlas import DepthAtlas
 
@@ -96,22 +98,25 @@ def maps(engine, scene, bounds, stats, k: int | None = None) -> SourceMaps:
     info = stats.info.setdefault("sources", {})
     t0 = time.perf_counter()
     world, k = scene.world, k or sky.DIRECTIONS
+    key = (k, *sky_set) if k == sky.RENDER_DIRECTIONS else (k, 0, 1)
     if not sky.lit(world):
         digest = world.digest or _digest(world.radiance)
-        if k not in sm.world or sm.world[k][0] != digest:
-            cells = sky.cells(world, k)
-            old = sm.world.get(k)  # the maps depend on the geometry alone
+        if key not in sm.world or sm.world[key][0] != digest:
+            cells = sky.cells(world, k, None if key[2] == 1 else sky.render_directions(*key[1:]))
+            old = sm.world.get(key)  # the maps depend on the geometry alone
             if sm.atlas is None or sm.atlas.raster is not engine.raster:
                 sm.atlas = DepthAtlas(engine.raster)
             # windows on the LPV box, depth over all the geometry (what stands outside the
             # box, a closed space's walls, shades it from the sky too)
             made = old[4] if old is not None else sky.shadow_maps(
                 sm.atlas, sky.suns(cells[0]), scene.bounds(), (lo, hi), sky.SHADOW_RESOLUTION)
-            sm.world[k] = (digest, *cells, made)
+            sm.world[key] = (digest, *cells, made)
+        counts = sorted({(n, sets) for n, _, sets in sm.world})
         info[f"World '{world.name}'"] = (
-            f"{' and '.join(str(n) for n in sorted(sm.world))} directions (GI, pixels), "
-            "radiance averaged over each one's cell; sky visibility from "
-            f"{sky.SHADOW_RESOLUTION}^2 orthographic shadow maps")
+            f"{' and '.join(f'{sets} x {n}' if sets > 1 else str(n) for n, sets in counts)} "
+            "directions (GI, pixels: a set per antialias sample), radiance averaged over each "
+            f"one's cell; sky visibility from {sky.SHADOW_RESOLUTION}^2 orthographic shadow "
+            "maps")
     mats = emitters.emissive_materials(scene)
     if mats:
         table = np.array([scene.materials[i].emission for i in mats], np.float64)
@@ -140,17 +145,19 @@ def maps(engine, scene, bounds, stats, k: int | None = None) -> SourceMaps:
 
 
 def direct(engine, scene, bounds, positions, normals, stats, material: int | None = None,
-           world: bool = True, gi: bool = False) -> np.ndarray | None:
+           world: bool = True, gi: bool = False,
+           sky_set: tuple[int, int] = (0, 1)) -> np.ndarray | None:
     """Direct irradiance (M, 3) W/m^2 of the World (``world``; over the GI's directions with
-    ``gi``, else the pixels') and the emitters (of ``material`` only, when given) at
-    receivers; None when none of them sends light."""
+    ``gi``, else the pixels' set ``sky_set``, maps()) and the emitters (of ``material`` only,
+    when given) at receivers; None when none of them sends light."""
     if sky.lit(scene.world) and not emitters.emissive_materials(scene):
         return None
     k = sky.DIRECTIONS if gi else sky.RENDER_DIRECTIONS
-    sm = maps(engine, scene, bounds, stats, k)
+    sm = maps(engine, scene, bounds, stats, k, sky_set)
+    key = (k, *sky_set) if not gi else (k, 0, 1)
     e = None
-    if world and k in sm.world:
-        e = sky.irradiance(*sm.world[k][1:], positions, normals, pcf=not gi)
+    if world and key in sm.world:
+        e = sky.irradiance(*sm.world[key][1:], positions, normals, pcf=not gi)
     for c, shadow in (sm.clusters[1] if sm.clusters else []):
         if material is None or c.material == material:
             part = emitters.irradiance(c, shadow, positions, normals)

@@ -97,7 +97,7 @@ def test_gi_sky_light_of_one_tap_beside_a_long_wall_is_the_visible_skys_view_fac
     eng = engine.Engine()
     eng.update(scene)
     sm = sources.maps(eng, scene, eng.lpv_bounds(scene), engine.Stats())
-    e = sky.irradiance(*sm.world[sky.DIRECTIONS][1:], np.c_[0.3 * x, -x, np.zeros_like(x)],
+    e = sky.irradiance(*sm.world[(sky.DIRECTIONS, 0, 1)][1:], np.c_[0.3 * x, -x, np.zeros_like(x)],
                        np.tile([0, 0, 1.0], (len(x), 1)), pcf=False)
     got, want = e[:, 0] / (np.pi * L), sky_fraction(x, 4.0)
     np.testing.assert_allclose(got, want, rtol=0.10)

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .. import areas, lookup, sources
+from .. import areas, lookup, sky, sources
 from ..engine import Engine, LPVResult, Stats, Timer
 from ..scene.model import Scene
 from . import direct, raster
@@ -57,6 +57,9 @@ def render(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats | None = N
     s = int(s)
     if s == 1:
         return _render_samples(engine, scene, lpv, stats, scene.camera.projection)
+    # the samples take turns over sets of the World's directions (sky.render_directions):
+    # their mean integrates the sky over more directions than one set's bands resolve
+    sets = min(s * s, sky.RENDER_SETS)
     total: dict = {}
     for i in range(s):
         for j in range(s):
@@ -69,7 +72,8 @@ def render(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats | None = N
             # later samples' skips (the shadow maps the first sample rendered, reused) are
             # not this render's decisions: only their times and drops are kept
             sub = stats if i == j == 0 else Stats()
-            samples = _render_samples(engine, scene, lpv, sub, proj, 1.0 / s)
+            samples = _render_samples(engine, scene, lpv, sub, proj, 1.0 / s,
+                                      ((i * s + j) % sets, sets))
             if sub is not stats:
                 for k, v in sub.ms.items():
                     stats.ms[k] = stats.ms.get(k, 0.0) + v
@@ -84,10 +88,12 @@ def render(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats | None = N
 
 
 def _render_samples(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats,
-                    projection: np.ndarray, footprint: float = 1.0) -> dict:
+                    projection: np.ndarray, footprint: float = 1.0,
+                    sky_set: tuple[int, int] = (0, 1)) -> dict:
     """The passes of one sample per pixel through the camera ``projection`` (render's
     sub-pixel offsets move it); a textured albedo is integrated over each sample's cell,
-    ``footprint`` pixels a side (Rasterizer.gbuffer)."""
+    ``footprint`` pixels a side (Rasterizer.gbuffer); the World's direct light over its
+    directions' set ``sky_set`` (sources.maps)."""
     w, h = scene.camera.resolution
     color = np.zeros((h, w, 3), np.float32)
     diff_dir = np.zeros((h, w, 3), np.float32)
@@ -107,7 +113,8 @@ def _render_samples(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats,
                                            scene.settings.shadow_resolution, stats)
                 e = direct.irradiance(light, pos, nrm, shadow)
                 e_dir = e if e_dir is None else e_dir + e  # the first light: no zeros added
-            e_src = sources.direct(engine, scene, (lo, hi), pos, nrm, stats)  # World, emitters
+            e_src = sources.direct(engine, scene, (lo, hi), pos, nrm, stats,  # World, emitters
+                                   sky_set=sky_set)
             if e_src is not None:
                 e_dir = e_src if e_dir is None else e_dir + e_src
             if e_dir is not None:
