@@ -135,8 +135,8 @@ class LPVSceneSettings(bpy.types.PropertyGroup):
         description="Size of the light map each light sees the scene with: finer lit detail")
     antialias: IntProperty(
         name="Anti-Aliasing", default=_CORE.antialias, update=_changed, **_limits("antialias"),
-        description="Samples per pixel side of rendered frames: smoother edges and World light "
-                    "(2 or more integrate the sky over 4 sets of directions), longer renders")
+        description="Samples per pixel side of rendered frames: smoother edges and sky light, "
+                    "longer renders")
     occlusion: BoolProperty(name="Occlusion", default=_CORE.occlusion, update=_changed,
                             description="Let objects block bounced light (no light through walls)")
     bounces: IntProperty(name="Bounces", default=_CORE.bounces, update=_changed,
