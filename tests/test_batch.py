@@ -176,7 +176,11 @@ def test_full_disk_exits_2_with_enospc_and_valid_stats(tmp_path):
 
 def test_ctrl_c_exits_130_and_keeps_finished_frames(tmp_path):
     out = tmp_path / "out"
-    proc = subprocess.Popen([sys.executable, "-m", "lpv_addon.batch", "--demo", "--out",
+    # Ctrl-C as a terminal sends it, also where this job runs with SIGINT ignored (a shell's
+    # background job), which the child would inherit
+    start = ("import runpy, signal; signal.signal(signal.SIGINT, signal.default_int_handler); "
+             "runpy.run_module('lpv_addon.batch', run_name='__main__', alter_sys=True)")
+    proc = subprocess.Popen([sys.executable, "-c", start, "--demo", "--out",
                              str(out), "--frames", "1-400", *SMALL], cwd=ROOT,
                             stderr=subprocess.PIPE, text=True)
     deadline = time.monotonic() + 240
@@ -256,3 +260,32 @@ def test_a_blend_renders_its_current_frame_to_the_render_output_path(tmp_path):
     proc = _cli(str(blend), "--animation", "--out", str(anim), *SMALL)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert sorted(p.name for p in anim.glob("*.exr")) == ["0001.exr", "0003.exr"]
+
+
+def test_ctrl_c_while_a_frames_record_is_written_keeps_the_record(tmp_path, monkeypatch):
+    """Ctrl-C arriving as the first frame's record reaches stats.json (here: sent from inside
+    the write, as it would land during its fsync) stops the batch after that frame: the EXR
+    and the record stay together (the tail written on cancel once overwrote the record)."""
+    bpy = pytest.importorskip("bpy")
+    from lpv_addon.render import frames
+    from lpv_addon.scene_io import demo
+
+    demo.cornell_box("SPOT", resolution=(32, 24))
+    real, sent = frames.StatsFile._write_at, []
+
+    def write_then_ctrl_c(self, offset, data):
+        real(self, offset, data)
+        if b'"frame": 1' in data and not sent:
+            sent.append(True)
+            os.kill(os.getpid(), signal.SIGINT)
+
+    monkeypatch.setattr(frames.StatsFile, "_write_at", write_then_ctrl_c)
+    job = frames.BatchJob(bpy.context.scene, tmp_path / "out", (1, 3),
+                          overrides={"grid_resolution": 8, "rsm_resolution": 32,
+                                     "antialias": 1}, in_process=True)
+    with pytest.raises(KeyboardInterrupt):
+        job.run()
+    assert sent
+    stats = json.loads((tmp_path / "out" / "stats.json").read_text())
+    assert stats["cancelled"] is True and [f["frame"] for f in stats["frames"]] == [1]
+    assert sorted(p.name for p in (tmp_path / "out").glob("*.exr")) == ["0001.exr"]

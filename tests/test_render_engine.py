@@ -34,6 +34,9 @@ from mathutils import Matrix
 
 zip_path, module, tmp, w, h, keys = sys.argv[1], sys.argv[2], sys.argv[3], int(sys.argv[4]), \
     int(sys.argv[5]), json.loads(sys.argv[6])
+# Ctrl-C raises KeyboardInterrupt here even where the job runs with SIGINT ignored (a shell's
+# background job), which this process would inherit
+signal.signal(signal.SIGINT, signal.default_int_handler)
 out = {"install": sorted(bpy.ops.extensions.package_install_files(
     filepath=zip_path, repo="user_default", enable_on_install=True))}
 sub = lambda name: importlib.import_module(f"{module}.lpv_addon.{name}")

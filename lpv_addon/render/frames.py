@@ -12,13 +12,16 @@ Blender, whose process must never run moderngl (it breaks Blender's drawing).
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import json
 import os
 import re
+import signal
 import tempfile
+import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import bpy
@@ -135,16 +138,41 @@ def render_output_file(scene: bpy.types.Scene, frame: int) -> Path:
     return Path(os.path.abspath(path + ".exr"))
 
 
+@contextlib.contextmanager
+def interrupts_deferred() -> Iterator[None]:
+    """Ctrl-C (SIGINT) held back while the block runs and delivered after it, so a frame's
+    EXR and its record in stats.json are written together or not at all. Python runs signal
+    handlers in the main thread whichever thread the signal meets, so the handler is swapped
+    for one that notes it; where Python does not handle SIGINT (another thread, a host
+    application's own handler) the block runs as it is."""
+    handler = signal.getsignal(signal.SIGINT)
+    if not callable(handler) or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    got: list = []
+    signal.signal(signal.SIGINT, lambda signum, frame: got.append(frame))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, handler)
+        if got:
+            handler(signal.SIGINT, got[0])
+
+
 class InProcess:
-    """The engine in this process, one frame at a time (collect returns at once)."""
+    """The engine in this process, one frame at a time: submit renders it, collect (at once)
+    writes its EXR."""
 
     def __init__(self):
         self.engine = core.engine.Engine()
 
-    def submit(self, scene, exr_path: Path) -> dict:
+    def submit(self, scene, exr_path: Path) -> tuple:
         stats = core.engine.Stats()
         result = self.engine.update(scene, stats)
-        passes = core.render.deferred.render(self.engine, scene, result, stats)
+        return core.render.deferred.render(self.engine, scene, result, stats), stats, exr_path
+
+    def collect(self, handle: tuple, block: bool) -> dict:
+        passes, stats, exr_path = handle
         t_w = time.perf_counter()
         try:
             core.render.exr.write_multilayer(exr_path, passes)
@@ -155,9 +183,6 @@ class InProcess:
             raise os_exc from None
         stats.add_ms("write", time.perf_counter() - t_w)
         return stats.as_dict()
-
-    def collect(self, handle: dict, block: bool) -> dict:
-        return handle
 
     def cancel(self) -> None:
         pass
@@ -289,11 +314,20 @@ class BatchJob:
         self.pending = (entry, self.renderer.submit(core_scene, self.frame_file(frame)))
 
     def _collect(self, block: bool) -> bool:
-        """Take the frame in flight if it is done; False while it is not."""
-        entry, handle = self.pending
-        stats = self.renderer.collect(handle, block)
+        """Take the frame in flight if it is done; False while it is not. Its EXR (written
+        here in-process) and its record go together: Ctrl-C waits for both."""
+        if self.in_process:
+            with interrupts_deferred():
+                return self._take(self.renderer.collect(self.pending[1], block))
+        stats = self.renderer.collect(self.pending[1], block)  # waiting stays interruptible
+        with interrupts_deferred():
+            return self._take(stats)
+
+    def _take(self, stats: dict | None) -> bool:
+        """Record the frame in flight, whose EXR is written, with ``stats`` (None: not done)."""
         if stats is None:
             return False
+        entry, _ = self.pending
         self.pending = None
         frame = entry["frame"]
         stats.setdefault("ms", {})["extract"] = entry["extract"]
@@ -339,8 +373,11 @@ class BatchJob:
     def cancel(self) -> None:
         """Stop now: the frame in flight is dropped, finished frames stay."""
         self.cancelled = self.record["cancelled"] = True
-        if self.pending is not None and self.in_process:  # already written: keep its record
-            self._collect(block=True)
+        if self.pending is not None and self.in_process:  # already rendered: write and keep it
+            try:
+                self._collect(block=True)
+            except OSError:  # it could not be written: dropped as an unfinished frame
+                self.pending = None
         if self.pending is not None and self.renderer is not None:
             self.renderer.cancel()
             self.renderer = None
