@@ -185,7 +185,10 @@ def cascade_surfels(positions: np.ndarray, chain: list):
 def propagate(engine, scene, src: Source, run, bounds, stats) -> list:
     """A source's propagated grids (one per cascade, unweighted): caster surfels (two-sided,
     cascade_surfels) lit by its direct light, their flux E x area x GI reflectance injected
-    and propagated through ``run`` (Engine._source caches them)."""
+    and propagated through ``run`` (Engine._source caches them). The World's surfels add
+    their glossy reflectance (Material.specular): sky light reflected off a metal leaves
+    around the normal, as the cosine lobe it is under a uniform sky (its mirror image of
+    uniform radiance), with its whole flux."""
     chain = run.chain
     maps(engine, scene, bounds, stats, sky.DIRECTIONS)  # timed on its own (source_maps)
     t0 = time.perf_counter()
@@ -194,6 +197,9 @@ def propagate(engine, scene, src: Source, run, bounds, stats) -> list:
     if engine.raster.surface is not None:  # the texture and corner colour at each surfel
         refl *= engine.raster.surface.factor(
             tri, textures.barycentric(scene.positions[tri], pos), gi=True)
+    glossy = scene.specular_per_triangle() if src.kind == "world" else None
+    if glossy is not None:
+        refl += glossy[tri]
     pos2, nrm2 = np.concatenate([pos, pos]), np.concatenate([nrm, -nrm])
     # Light leaving the LPV box outward meets nothing (the box bounds the geometry, or the
     # closed space around the camera): the side a surfel lights must face into the box (a
