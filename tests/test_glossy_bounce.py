@@ -264,14 +264,12 @@ def test_extraction_gives_the_glossy_reflectance():
     assert not info(mat).specular.any()
 
 
-@pytest.mark.bpy
-def test_floor_beside_a_metal_wall_against_cycles(tmp_path):
-    """Cycles (64 spp, one bounce) and LPV on a diffuse floor beside a Metallic 1, roughness
-    0.3 wall lit by a point light: the floor's indirect (Diffuse Indirect x Diffuse Color)
-    next to the wall, all of it light -> metal -> floor, agrees within 35 %, and is gone
-    without the glossy reflectance."""
-    pytest.importorskip("bpy")
-    import bpy
+def metal_wall_against_cycles(tmp_path, world: bool) -> tuple:
+    """A diffuse floor beside a Metallic 1, roughness 0.3 wall, lit by a 400 W point light or
+    (``world``) by a uniform World of 0.5 alone, in Cycles (64 spp, one bounce) and LPV: their
+    indirect terms on the floor pixels next to the wall, and LPV's without the glossy
+    reflectance."""
+    bpy = pytest.importorskip("bpy")
 
     import lpv_core as core
     from lpv_addon.render import cycles
@@ -287,12 +285,18 @@ def test_floor_beside_a_metal_wall_against_cycles(tmp_path):
                          demo.diffuse_material("Floor", (0.8, 0.8, 0.8), "DIFFUSE"))
     demo.add_mesh_object(sc, "Wall", demo.box_geometry(*box, ["+x"], inward=True),
                          scenes.principled_material("Metal", (0.9, 0.9, 0.9), 1.0, 0.3))
-    demo.add_light(sc, "Lamp", "POINT", 400.0, (0.0, 0.0, 2.5))
+    if world:
+        _, bg = scenes._world(sc, "Sky")
+        bg.inputs["Color"].default_value = (0.5, 0.5, 0.5, 1.0)
+        bg.inputs["Strength"].default_value = 1.0
+    else:
+        demo.add_light(sc, "Lamp", "POINT", 400.0, (0.0, 0.0, 2.5))
     demo.add_camera(sc, (-0.5, 0.0, 6.0), (-0.5, 0.01, 0.0), lens_mm=50.0)
     exr = tmp_path / "wall.exr"
     cycles.render_cycles_passes(str(exr), samples=64, resolution=res)
     cyc = indirect_term(report._read_exr(str(exr)))[..., :3]
     scene = extract_scene(bpy.context.evaluated_depsgraph_get(), bpy.context.scene, res)
+    assert (not scene.lights and scene.world is not None) if world else scene.lights
     raster = core.render.raster.Rasterizer()
     eng = report._make_engine(raster)
     ours = indirect_term(report.run_lpv(scene, scene.settings, eng, 1)["passes"])[..., :3]
@@ -303,61 +307,32 @@ def test_floor_beside_a_metal_wall_against_cycles(tmp_path):
         near = (np.abs(p[..., 2]) < 1e-3) & (p[..., 0] > 0.0) & (p[..., 0] < 0.7) & (
             np.abs(p[..., 1]) < 0.6)
     assert near.sum() > 50
-    ratio = ours[near].mean() / cyc[near].mean()
+    bare = dataclasses.replace(scene, materials=[
+        dataclasses.replace(m, specular=np.zeros(3, np.float32)) for m in scene.materials])
+    dark = indirect_term(report.run_lpv(bare, bare.settings, eng, 1)["passes"])[..., :3]
+    return ours[near], cyc[near], dark[near]
+
+
+@pytest.mark.bpy
+def test_floor_beside_a_metal_wall_against_cycles(tmp_path):
+    """Lit by a point light: the floor's indirect (Diffuse Indirect x Diffuse Color) next to
+    the wall, all of it light -> metal -> floor, agrees with Cycles within 35 %, and is gone
+    without the glossy reflectance."""
+    ours, cyc, dark = metal_wall_against_cycles(tmp_path, world=False)
+    ratio = ours.mean() / cyc.mean()
     print(f"\nfloor next to the metal wall, LPV / Cycles indirect: {ratio:.3f}")
     assert 0.65 < ratio < 1.35
-    bare = dataclasses.replace(scene, materials=[
-        dataclasses.replace(m, specular=np.zeros(3, np.float32)) for m in scene.materials])
-    dark = indirect_term(report.run_lpv(bare, bare.settings, eng, 1)["passes"])[..., :3]
-    assert dark[near].mean() < 0.05 * cyc[near].mean()
+    assert dark.mean() < 0.05 * cyc.mean()
 
 
+@pytest.mark.bpy
 def test_floor_beside_a_metal_wall_under_a_uniform_world_against_cycles(tmp_path):
-    """The same floor and Metallic 1, roughness 0.3 wall under a uniform World (no lamp):
-    Cycles' floor next to the wall gets the sky the metal reflects (camera -> floor -> metal
-    -> World, one bounce); LPV's World surfels on the wall carry it with their glossy
-    reflectance, around the wall's normal. Within 35 % of Cycles next to the wall, and gone
-    without the glossy reflectance."""
-    pytest.importorskip("bpy")
-    import bpy
-
-    import lpv_core as core
-    from lpv_addon.render import cycles
-    from lpv_addon.scene_io import demo
-    from lpv_addon.scene_io.extract import extract_scene
-    from lpv_core.render.error import indirect_term
-    from tools import report, scenes
-
-    res = (48, 48)
-    sc = demo.new_scene("glossy_sky_wall", res, True)
-    box = ((-3, -2, 0), (1, 2, 2))
-    demo.add_mesh_object(sc, "Floor", demo.box_geometry(*box, ["-z"], inward=True),
-                         demo.diffuse_material("Floor", (0.8, 0.8, 0.8), "DIFFUSE"))
-    demo.add_mesh_object(sc, "Wall", demo.box_geometry(*box, ["+x"], inward=True),
-                         scenes.principled_material("Metal", (0.9, 0.9, 0.9), 1.0, 0.3))
-    _, bg = scenes._world(sc, "Sky")
-    bg.inputs["Color"].default_value = (0.5, 0.5, 0.5, 1.0)
-    bg.inputs["Strength"].default_value = 1.0
-    demo.add_camera(sc, (-0.5, 0.0, 6.0), (-0.5, 0.01, 0.0), lens_mm=50.0)
-    exr = tmp_path / "sky_wall.exr"
-    cycles.render_cycles_passes(str(exr), samples=64, resolution=res)
-    cyc = indirect_term(report._read_exr(str(exr)))[..., :3]
-    scene = extract_scene(bpy.context.evaluated_depsgraph_get(), bpy.context.scene, res)
-    assert not scene.lights and scene.world is not None
-    raster = core.render.raster.Rasterizer()
-    eng = report._make_engine(raster)
-    ours = indirect_term(report.run_lpv(scene, scene.settings, eng, 1)["passes"])[..., :3]
-    covered, pos, _, _, _ = raster.gbuffer(scene.camera.view, scene.camera.projection, *res)
-    p = np.full((*covered.shape, 3), np.nan)
-    p[covered] = pos
-    with np.errstate(invalid="ignore"):
-        near = (np.abs(p[..., 2]) < 1e-3) & (p[..., 0] > 0.0) & (p[..., 0] < 0.7) & (
-            np.abs(p[..., 1]) < 0.6)
-    assert near.sum() > 50
-    ratio = ours[near].mean() / cyc[near].mean()
+    """Under a uniform World, no lamp: Cycles' floor next to the wall gets the sky the metal
+    reflects (camera -> floor -> metal -> World, one bounce); LPV's World surfels on the wall
+    carry it with their glossy reflectance, around the wall's normal. Within 35 % of Cycles,
+    and gone without the glossy reflectance."""
+    ours, cyc, dark = metal_wall_against_cycles(tmp_path, world=True)
+    ratio = ours.mean() / cyc.mean()
     print(f"\nfloor next to the metal wall under the World, LPV / Cycles indirect: {ratio:.3f}")
     assert 0.65 < ratio < 1.35
-    bare = dataclasses.replace(scene, materials=[
-        dataclasses.replace(m, specular=np.zeros(3, np.float32)) for m in scene.materials])
-    dark = indirect_term(report.run_lpv(bare, bare.settings, eng, 1)["passes"])[..., :3]
-    assert dark[near].mean() < 0.05 * cyc[near].mean()
+    assert dark.mean() < 0.05 * cyc.mean()
