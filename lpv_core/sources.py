@@ -98,7 +98,7 @@ def maps(engine, scene, bounds, stats, k: int | None = None,
     info = stats.info.setdefault("sources", {})
     t0 = time.perf_counter()
     world, k = scene.world, k or sky.DIRECTIONS
-    key = (k, *sky_set) if k == sky.RENDER_DIRECTIONS else (k, 0, 1)
+    key = _world_key(k, sky_set)
     if not sky.lit(world):
         digest = world.digest or _digest(world.radiance)
         if key not in sm.world or sm.world[key][0] != digest:
@@ -111,10 +111,10 @@ def maps(engine, scene, bounds, stats, k: int | None = None,
             made = old[4] if old is not None else sky.shadow_maps(
                 sm.atlas, sky.suns(cells[0]), scene.bounds(), (lo, hi), sky.SHADOW_RESOLUTION)
             sm.world[key] = (digest, *cells, made)
-        counts = sorted({(n, sets) for n, _, sets in sm.world})
+        counts = {n: sum(1 for m, _, _ in sm.world if m == n) for n, _, _ in sm.world}
         info[f"World '{world.name}'"] = (
-            f"{' and '.join(f'{sets} x {n}' if sets > 1 else str(n) for n, sets in counts)} "
-            "directions (GI, pixels: a set per antialias sample), radiance averaged over each "
+            f"{' and '.join(f'{c} x {n}' if c > 1 else str(n) for n, c in sorted(counts.items()))}"
+            " directions (GI, pixels: a set per antialias sample), radiance averaged over each "
             f"one's cell; sky visibility from {sky.SHADOW_RESOLUTION}^2 orthographic shadow "
             "maps")
     mats = emitters.emissive_materials(scene)
@@ -144,6 +144,13 @@ def maps(engine, scene, bounds, stats, k: int | None = None,
     return sm
 
 
+def _world_key(k: int, sky_set: tuple[int, int]) -> tuple[int, int, int]:
+    """SourceMaps.world's key of ``k`` directions in set ``sky_set``: a set of the pixels'
+    but the first (the unturned sphere, the same directions as one set) is its own."""
+    index, sets = sky_set
+    return (k, index % sets, sets) if k == sky.RENDER_DIRECTIONS and index % sets else (k, 0, 1)
+
+
 def direct(engine, scene, bounds, positions, normals, stats, material: int | None = None,
            world: bool = True, gi: bool = False,
            sky_set: tuple[int, int] = (0, 1)) -> np.ndarray | None:
@@ -154,7 +161,7 @@ def direct(engine, scene, bounds, positions, normals, stats, material: int | Non
         return None
     k = sky.DIRECTIONS if gi else sky.RENDER_DIRECTIONS
     sm = maps(engine, scene, bounds, stats, k, sky_set)
-    key = (k, *sky_set) if not gi else (k, 0, 1)
+    key = _world_key(k, sky_set)
     e = None
     if world and key in sm.world:
         e = sky.irradiance(*sm.world[key][1:], positions, normals, pcf=not gi)
