@@ -112,6 +112,8 @@ def maps(engine, scene, bounds, stats, k: int | None = None,
                 sm.atlas, sky.suns(cells[0]), scene.bounds(), (lo, hi), sky.SHADOW_RESOLUTION)
             sm.world[key] = (digest, *cells, made)
         counts = {n: sum(1 for m, _, _ in sm.world if m == n) for n, _, _ in sm.world}
+        if k == sky.RENDER_DIRECTIONS:  # this render's sets (the first sample asks for its own)
+            counts[k] = max(counts[k], sky_set[1])
         info[f"World '{world.name}'"] = (
             f"{' and '.join(f'{c} x {n}' if c > 1 else str(n) for n, c in sorted(counts.items()))}"
             " directions (GI, pixels: a set per antialias sample), radiance averaged over each "

@@ -517,7 +517,10 @@ def test_antialias_samples_take_turns_over_sets_of_sky_directions():
     for aa in (1, 2):
         scene = skylight_room(aa)
         eng = engine.Engine()
-        passes = deferred.render(eng, scene, eng.update(scene))
+        lpv = eng.update(scene)
+        passes = deferred.render(eng, scene, lpv)
+        assert ("4 x 128" if aa == 2 else "64 and 128 ") in lpv.stats.info["sources"][
+            "World 'World'"]  # the statistics name the sets
         cam = scene.camera
         mask, pos, _, _, _ = eng.raster.gbuffer(cam.view, cam.projection, 48, 48)
         floor = (np.abs(pos[:, 2]) < 1e-3) & (np.abs(pos[:, :2]) < 1.9).all(axis=1)
