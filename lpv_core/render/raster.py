@@ -466,7 +466,10 @@ class Rasterizer:
         albedo = self.albedo[tri]
         if self.surface is not None:
             factor = self.surface.factor(tri, b[:, :2])
-            if footprint > 0:
+            self.surface.info["footprint_refined"] = 0
+            # a pixel of an untextured triangle reads its exact factor at the centre (corner
+            # colours are linear over it): without a textured pixel there is nothing to refine
+            if footprint > 0 and (self.surface.layout.albedo_texture[tri] >= 0).any():
                 corners = self.corners
                 ray = PixelRays(view, projection, width, height, covered, footprint)
 
