@@ -196,7 +196,9 @@ _TEXTURES = core.scene.textures.Store()  # the overlay's textures, fitted once p
 def _geometry(scene) -> dict:
     """What the overlay draws: triangles, albedo (per corner with corner colours), receiver
     flags and, where materials have textures, each triangle's texture, the UVs and the
-    textures fitted to the budget (the same textures.sample rules as the render's)."""
+    textures fitted to the budget (the same textures.sample rules as the render's); where
+    materials have a view-angle share, each triangle's row (-1 none) of the stacked tables
+    (textures.view_shares, as the render applies them)."""
     geo = {
         "positions": scene.positions.astype(np.float32),
         "normals": scene.normals.astype(np.float32),
@@ -211,6 +213,9 @@ def _geometry(scene) -> dict:
         if lay.textures:
             geo["texture"], geo["uvs"] = lay.albedo_texture, lay.uvs
             geo["textures"] = _TEXTURES.fitted(lay)
+    shares = core.scene.textures.view_shares(scene.materials, scene.material_index)
+    if shares is not None:
+        geo["share"], geo["shares"] = shares
     return geo
 
 

@@ -13,7 +13,7 @@ half a cell along the viewer-facing normal, moved out of the slabs an occluder's
 off (``lookup.sample_points`` / ``gap_corrected``; skipped for a cascade without gaps),
 trilinear over the 8 nearest cells (zero outside the grid) leaving out corners behind
 occluders and renormalising (``injection.visible_corners``), then the irradiance kernel of
-``sh.irradiance_weights`` / s^2; clamp at zero; cascades add up. Indirect radiance = irradiance / pi x albedo, 0 where ``gi_receiver`` is off (the albedo: per corner x corner colour, x the material's texture per pixel as ``textures.sample`` reads it: one draw per texture, uploaded once per digest). Per-vertex
+``sh.irradiance_weights`` / s^2; clamp at zero; cascades add up. Indirect radiance = irradiance / pi x albedo, 0 where ``gi_receiver`` is off (the albedo: per corner x corner colour, x the material's texture per pixel as ``textures.sample`` reads it: one draw per texture, uploaded once per digest; x the material's Diffuse Color share at the fragment's view angle, ``textures.share_at`` of the stacked ``textures.view_shares`` tables, uploaded once per result as a float texture: the 13th sampler). Per-vertex
 shading would blur the LPV over large polygons (a Cornell wall is one quad). Transition areas are multiplied into the
 uploaded grids per cell (exact inside a box and far from it; the falloff is resolved at cell
 size), clip areas act in propagation and in the visibility already.
@@ -41,7 +41,8 @@ _SHADERS: dict = {}
 _RESOURCES: dict = {}  # key -> GPU objects (textures, batches), freed with free_resources()
 _HANDLES: list = []  # draw handler of SpaceView3D (at most one)
 
-# Fragment shader samplers, by slot (11 per draw of a cascade; OpenGL 4.3 guarantees 16).
+# Fragment shader samplers, by slot (11 per draw of a cascade, then albedo_tex and share_tex:
+# 13; OpenGL 4.3 guarantees 16).
 SAMPLERS = ("lpv_r", "lpv_g", "lpv_b", "vis_plus", "vis_minus", "lpv_r2", "lpv_g2", "lpv_b2",
             "lpv_c8", "gaps_plus", "gaps_minus")
 # The albedo texture of a textured batch (12th sampler) and its modes' codes in tex_mode.
@@ -56,6 +57,7 @@ void main() {
     v_nrm = nor;
     v_col = col;
     v_uv = uv;
+    v_share = share;
     gl_Position = ModelViewProjectionMatrix * vec4(pos, 1.0);
 }
 """
@@ -143,6 +145,19 @@ vec3 albedo_footprint(vec2 uv, vec2 du, vec2 dv) {
         }
     }
     return sum / float(FOOTPRINT_SPLIT * FOOTPRINT_SPLIT);
+}
+
+/* textures.share_at: row ``row`` of share_tex (one row per material, a column per SHARE_COS
+   entry) at the view cosine c, linear between the (non-uniform) cosines, held at the ends */
+vec3 view_share(int row, float c) {
+    float x = clamp(isnan(c) ? 1.0 : abs(c), SHARE_COS[0], SHARE_COS[SHARE_K - 1]);
+    int i = 0;
+    while (i < SHARE_K - 2 && x > SHARE_COS[i + 1]) {
+        i++;
+    }
+    float t = (x - SHARE_COS[i]) / (SHARE_COS[i + 1] - SHARE_COS[i]);
+    return mix(texelFetch(share_tex, ivec2(i, row), 0).rgb,
+               texelFetch(share_tex, ivec2(i + 1, row), 0).rgb, t);
 }
 
 void main() {
@@ -239,6 +254,9 @@ void main() {
                   dot(sb, w01) + dot(sb2, w2)) + s8 * w8;
     e = max(e, vec3(0.0)) / (cell * cell);
     vec3 albedo = tex_mode.x > 0.5 ? v_col.rgb * albedo_footprint(v_uv, du, dv) : v_col.rgb;
+    if (v_share > -0.5) {  /* the Diffuse Color's share at the view angle */
+        albedo *= view_share(int(v_share + 0.5), dot(n, normalize(to_eye)));
+    }
     vec3 radiance = e / PI * albedo * v_col.a;
     FragColor = vec4(radiance * params.y, 1.0);
 }
@@ -253,11 +271,13 @@ def _lpv_shader():
         iface.smooth("VEC3", "v_nrm")
         iface.smooth("VEC4", "v_col")
         iface.smooth("VEC2", "v_uv")
+        iface.flat("FLOAT", "v_share")
         info = gpu.types.GPUShaderCreateInfo()
         info.vertex_in(0, "VEC3", "pos")
         info.vertex_in(1, "VEC3", "nor")
         info.vertex_in(2, "VEC4", "col")
         info.vertex_in(3, "VEC2", "uv")
+        info.vertex_in(4, "FLOAT", "share")  # row of share_tex, -1 none
         info.vertex_out(iface)
         info.push_constant("MAT4", "ModelViewProjectionMatrix")
         info.push_constant("VEC4", "grid")  # origin xyz, cell size
@@ -270,12 +290,16 @@ def _lpv_shader():
         for slot, name in enumerate(SAMPLERS):
             info.sampler(slot, "FLOAT_3D", name)
         info.sampler(len(SAMPLERS), "FLOAT_2D", "albedo_tex")
+        info.sampler(len(SAMPLERS) + 1, "FLOAT_2D", "share_tex")
         info.fragment_out(0, "VEC4", "FragColor")
         info.vertex_source(VERTEX_SOURCE)
         tx = core.scene.textures  # the render's footprint rule (albedo_footprint)
         info.define("FOOTPRINT_SPLIT", str(int(tx.FOOTPRINT_SPLIT)))
         info.define("FOOTPRINT_TOL", f"{float(tx.FOOTPRINT_TOL):.9g}")
-        info.fragment_source(FRAGMENT_SOURCE)
+        info.define("SHARE_K", str(len(tx.SHARE_COS)))
+        cosines = ", ".join(f"{float(c):.9g}" for c in tx.SHARE_COS)
+        info.fragment_source(f"const float SHARE_COS[SHARE_K] = float[SHARE_K]({cosines});\n"
+                             + FRAGMENT_SOURCE)
         shader = _SHADERS["lpv"] = gpu.shader.create_from_info(info)
     return shader
 
@@ -355,7 +379,8 @@ def _resource(key, make):
 
 def _geometry_batches(result) -> list:
     """(batch, texture or None) per albedo texture of the result's geometry (live._geometry:
-    "texture" per triangle, -1 none, into "textures"; "uvs" per corner), untextured first."""
+    "texture" per triangle, -1 none, into "textures"; "uvs" per corner; "share" per triangle,
+    -1 none, into "shares"), untextured first."""
     geo = result.geometry
     t = geo["positions"].shape[0]
     col = np.empty((t, 3, 4), np.float32)
@@ -364,11 +389,13 @@ def _geometry_batches(result) -> list:
     ids = np.asarray(geo.get("texture", np.full(t, -1)), np.int64)
     uvs = geo.get("uvs")
     uvs = np.zeros((t, 3, 2), np.float32) if uvs is None else np.asarray(uvs, np.float32)
+    share = np.repeat(np.asarray(geo.get("share", np.full(t, -1)), np.float32)[:, None], 3, 1)
     out = []
     for k in np.unique(ids):
         sel = ids == k
         attrs = {"pos": _c(geo["positions"][sel], 3), "nor": _c(geo["normals"][sel], 3),
-                 "col": _c(col[sel], 4), "uv": _c(uvs[sel], 2)}
+                 "col": _c(col[sel], 4), "uv": _c(uvs[sel], 2),
+                 "share": np.ascontiguousarray(share[sel].ravel())}
         out.append((batch_for_shader(_lpv_shader(), "TRIS", attrs),
                     None if k < 0 else geo["textures"][k]))
     return out
@@ -385,6 +412,18 @@ def _albedo_texture(texture):
             (w, h), format="RGBA16F", data=gpu.types.Buffer("FLOAT", h * w * 4, rgba.ravel()))
         UPLOADS[0] += 1
     return gtex
+
+
+def share_texture(shares):
+    """The stacked view-angle shares (S, K, 3) of textures.view_shares as an RGBA32F 2D
+    texture, a row per material, a column per SHARE_COS entry; None without."""
+    if shares is None:
+        return None
+    table = np.asarray(shares, np.float32)
+    s, k = table.shape[:2]
+    rgba = np.ones((s, k, 4), np.float32)
+    rgba[..., :3] = table
+    return _texture((k, s), "RGBA32F", rgba)
 
 
 def levels(result) -> list:
@@ -409,6 +448,7 @@ def _result_resources(result):
         white = gpu.types.GPUTexture((1, 1), format="RGBA16F",
                                      data=gpu.types.Buffer("FLOAT", 4, [1.0] * 4))
         return {"levels": out, "ones": ones, "zeros": zeros, "white": white,
+                "shares": share_texture(result.geometry.get("shares")),
                 "batches": _geometry_batches(result)}
 
     return _resource(("result", result.serial), make)
@@ -477,6 +517,8 @@ def _draw_indirect(result, mvp: Matrix, eye4, view_dir4, weight: float,
         g_plus, g_minus = gaps if gaps is not None else (res["zeros"], res["zeros"])
         shader.uniform_sampler("gaps_plus", g_plus)
         shader.uniform_sampler("gaps_minus", g_minus)
+        shares = res["shares"]  # unread where no triangle has a row
+        shader.uniform_sampler("share_tex", res["white"] if shares is None else shares)
         for batch, texture in res["batches"]:
             if texture is None:
                 shader.uniform_float("tex_mode", (0.0, 0.0, 0.0, 0.0))
