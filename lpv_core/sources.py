@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import emitters, propagation, sky
+from . import emitters, mirror_lobe, propagation, sky
 from .geometry_volume import surfels
 from .scene import textures
 
@@ -194,10 +194,11 @@ def cascade_surfels(positions: np.ndarray, chain: list):
 def propagate(engine, scene, src: Source, run, bounds, stats) -> list:
     """A source's propagated grids (one per cascade, unweighted): caster surfels (two-sided,
     cascade_surfels) lit by its direct light, their flux E x area x GI reflectance injected
-    and propagated through ``run`` (Engine._source caches them). The World's surfels add
-    their glossy reflectance (Material.specular): sky light reflected off a metal leaves
-    around the normal, as the cosine lobe it is under a uniform sky (its mirror image of
-    uniform radiance), with its whole flux."""
+    and propagated through ``run`` (Engine._source caches them). The glossy reflectance
+    (Material.specular) bounces too: the World's surfels add it, sky light reflected off a
+    metal leaving around the normal, as the cosine lobe it is under a uniform sky (its mirror
+    image of uniform radiance); an emitter's light leaves along its mirror direction
+    (emitter_mirror_vpls)."""
     chain = run.chain
     maps(engine, scene, bounds, stats, sky.DIRECTIONS)  # timed on its own (source_maps)
     t0 = time.perf_counter()
@@ -206,8 +207,8 @@ def propagate(engine, scene, src: Source, run, bounds, stats) -> list:
     if engine.raster.surface is not None:  # the texture and corner colour at each surfel
         refl *= engine.raster.surface.factor(
             tri, textures.barycentric(scene.positions[tri], pos), gi=True)
-    glossy = scene.specular_per_triangle() if src.kind == "world" else None
-    if glossy is not None:
+    glossy = scene.specular_per_triangle()
+    if glossy is not None and src.kind == "world":
         refl += glossy[tri]
     pos2, nrm2 = np.concatenate([pos, pos]), np.concatenate([nrm, -nrm])
     # Light leaving the LPV box outward meets nothing (the box bounds the geometry, or the
@@ -228,18 +229,47 @@ def propagate(engine, scene, src: Source, run, bounds, stats) -> list:
     side = inside % max(len(pos), 1)  # each side's surfel
     flux = e * area[side][:, None] * refl[side]
     keep = np.maximum(np.maximum(flux[:, 0], flux[:, 1]), flux[:, 2]) > 0
+    vpls = (pos2[keep], nrm2[keep], flux[keep], np.zeros_like(nrm2[keep]))
+    if glossy is not None and src.kind == "emission" and inside.size:
+        mirror = emitter_mirror_vpls(engine.source_maps.clusters[1], src.material, pos2, nrm2,
+                                     area[side], glossy[tri][side])
+        vpls = tuple(np.concatenate(pair) for pair in zip(vpls, mirror))
     stats.add_ms("sources", time.perf_counter() - t0)
-    stats.info.setdefault("source_flux", {})[src.name] = float(flux[keep].sum())
-    if not keep.any():
+    stats.info.setdefault("source_flux", {})[src.name] = float(vpls[2].sum())
+    if not len(vpls[0]):
         seen = bool((e > 0).any())
         stats.skip("sources", f"GI of {src.name}",
                    "no caster it lights inside the LPV" if seen else
                    "no surface inside the LPV sees it (every surfel's visibility is 0)")
         return [g.zeros(propagation.coefficients(scene.settings.angular)) for g in chain]
-    totals = run.propagate(pos2[keep], nrm2[keep], flux[keep])
+    totals = run.propagate(*vpls[:3], lift=vpls[3] if vpls[3].any() else None)
     if scene.settings.bounces > 1:
         totals = engine._more_bounces(scene, run, totals)
     return totals
+
+
+def emitter_mirror_vpls(clusters: list, material: int, positions: np.ndarray,
+                        normals: np.ndarray, area: np.ndarray, specular: np.ndarray) -> tuple:
+    """The glossy bounce of emissive ``material``'s light as VPLs (position, axis, flux, lift):
+    per cluster of it, each glossy surfel side's irradiance from it x area x glossy reflectance
+    ``specular`` (M, 3), leaving around the mirror direction of the ray from the cluster's
+    centre (mirror_lobe.above, the rsm.mirror_vpls lobe), injected from the surface's side."""
+    parts = [np.zeros((0, 3))] * 4
+    lit = np.flatnonzero(specular.max(axis=1) > 0)
+    for c, shadow in clusters if lit.size else []:
+        if c.material != material:
+            continue
+        p, n = positions[lit], normals[lit]
+        flux = emitters.irradiance(c, shadow, p, n) * area[lit, None] * specular[lit]
+        d = p - np.asarray(c.centre, np.float64)
+        d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-300)
+        dn = np.einsum("nc,nc->n", d, n)
+        ok = (dn < 0) & (flux.max(axis=1) > 0) & np.isfinite(flux).all(axis=1)
+        if ok.any():
+            axis = mirror_lobe.above(d[ok] - 2.0 * dn[ok, None] * n[ok], n[ok])
+            part = (p[ok], axis, flux[ok], n[ok] - axis)
+            parts = [np.concatenate(pair) for pair in zip(parts, part)]
+    return tuple(parts)
 
 
 def camera_light(engine, scene, projection, mask: np.ndarray, combined: np.ndarray) -> None:
