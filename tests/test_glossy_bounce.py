@@ -264,22 +264,52 @@ def test_extraction_gives_the_glossy_reflectance():
     assert not info(mat).specular.any()
 
 
-def metal_wall_against_cycles(tmp_path, world: bool) -> tuple:
-    """A diffuse floor beside a Metallic 1, roughness 0.3 wall, lit by a 400 W point light or
-    (``world``) by a uniform World of 0.5 alone, in Cycles (64 spp, one bounce) and LPV: their
-    indirect terms on the floor pixels next to the wall, and LPV's without the glossy
-    reflectance."""
+RES = (48, 48)  # the Cycles comparisons' image size
+
+
+def glossy_bounce_against_cycles(tmp_path, region, least: int, what: str):
+    """Cycles (64 spp, one bounce) and LPV on the context scene at RES: over the pixels that
+    ``region(positions)`` selects (more than ``least``), LPV's indirect term (Diffuse Indirect
+    x Diffuse Color) within 35 % of Cycles', and under 5 % of it without the glossy
+    reflectance. Returns the extracted scene."""
     bpy = pytest.importorskip("bpy")
 
     import lpv_core as core
     from lpv_addon.render import cycles
-    from lpv_addon.scene_io import demo
     from lpv_addon.scene_io.extract import extract_scene
     from lpv_core.render.error import indirect_term
-    from tools import report, scenes
+    from tools import report
 
-    res = (48, 48)
-    sc = demo.new_scene("glossy_wall", res, True)
+    exr = tmp_path / "cycles.exr"
+    cycles.render_cycles_passes(str(exr), samples=64, resolution=RES)
+    cyc = indirect_term(report._read_exr(str(exr)))[..., :3]
+    scene = extract_scene(bpy.context.evaluated_depsgraph_get(), bpy.context.scene, RES)
+    raster = core.render.raster.Rasterizer()
+    eng = report._make_engine(raster)
+    ours = indirect_term(report.run_lpv(scene, scene.settings, eng, 1)["passes"])[..., :3]
+    covered, pos, _, _, _ = raster.gbuffer(scene.camera.view, scene.camera.projection, *RES)
+    p = np.full((*covered.shape, 3), np.nan)
+    p[covered] = pos
+    with np.errstate(invalid="ignore"):
+        sel = region(p)
+    assert sel.sum() > least and cyc[sel].mean() > 0
+    ratio = ours[sel].mean() / cyc[sel].mean()
+    print(f"\n{what}, LPV / Cycles indirect: {ratio:.3f}")
+    assert 0.65 < ratio < 1.35
+    bare = dataclasses.replace(scene, materials=[
+        dataclasses.replace(m, specular=np.zeros(3, np.float32)) for m in scene.materials])
+    dark = indirect_term(report.run_lpv(bare, bare.settings, eng, 1)["passes"])[..., :3]
+    assert dark[sel].mean() < 0.05 * cyc[sel].mean()
+    return scene
+
+
+def metal_wall_scene(world: bool) -> None:
+    """A diffuse floor beside a Metallic 1, roughness 0.3 wall, lit by a 400 W point light or
+    (``world``) by a uniform World of 0.5 alone, seen from above."""
+    from lpv_addon.scene_io import demo
+    from tools import scenes
+
+    sc = demo.new_scene("glossy_wall", RES, True)
     box = ((-3, -2, 0), (1, 2, 2))
     demo.add_mesh_object(sc, "Floor", demo.box_geometry(*box, ["-z"], inward=True),
                          demo.diffuse_material("Floor", (0.8, 0.8, 0.8), "DIFFUSE"))
@@ -292,37 +322,23 @@ def metal_wall_against_cycles(tmp_path, world: bool) -> tuple:
     else:
         demo.add_light(sc, "Lamp", "POINT", 400.0, (0.0, 0.0, 2.5))
     demo.add_camera(sc, (-0.5, 0.0, 6.0), (-0.5, 0.01, 0.0), lens_mm=50.0)
-    exr = tmp_path / "wall.exr"
-    cycles.render_cycles_passes(str(exr), samples=64, resolution=res)
-    cyc = indirect_term(report._read_exr(str(exr)))[..., :3]
-    scene = extract_scene(bpy.context.evaluated_depsgraph_get(), bpy.context.scene, res)
-    assert (not scene.lights and scene.world is not None) if world else scene.lights
-    raster = core.render.raster.Rasterizer()
-    eng = report._make_engine(raster)
-    ours = indirect_term(report.run_lpv(scene, scene.settings, eng, 1)["passes"])[..., :3]
-    covered, pos, _, _, _ = raster.gbuffer(scene.camera.view, scene.camera.projection, *res)
-    p = np.full((*covered.shape, 3), np.nan)
-    p[covered] = pos
-    with np.errstate(invalid="ignore"):
-        near = (np.abs(p[..., 2]) < 1e-3) & (p[..., 0] > 0.0) & (p[..., 0] < 0.7) & (
-            np.abs(p[..., 1]) < 0.6)
-    assert near.sum() > 50
-    bare = dataclasses.replace(scene, materials=[
-        dataclasses.replace(m, specular=np.zeros(3, np.float32)) for m in scene.materials])
-    dark = indirect_term(report.run_lpv(bare, bare.settings, eng, 1)["passes"])[..., :3]
-    return ours[near], cyc[near], dark[near]
+
+
+def next_to_the_wall(p):
+    """The floor pixels within 0.7 m of metal_wall_scene's wall."""
+    return (np.abs(p[..., 2]) < 1e-3) & (p[..., 0] > 0.0) & (p[..., 0] < 0.7) & (
+        np.abs(p[..., 1]) < 0.6)
 
 
 @pytest.mark.bpy
 def test_floor_beside_a_metal_wall_against_cycles(tmp_path):
-    """Lit by a point light: the floor's indirect (Diffuse Indirect x Diffuse Color) next to
-    the wall, all of it light -> metal -> floor, agrees with Cycles within 35 %, and is gone
-    without the glossy reflectance."""
-    ours, cyc, dark = metal_wall_against_cycles(tmp_path, world=False)
-    ratio = ours.mean() / cyc.mean()
-    print(f"\nfloor next to the metal wall, LPV / Cycles indirect: {ratio:.3f}")
-    assert 0.65 < ratio < 1.35
-    assert dark.mean() < 0.05 * cyc.mean()
+    """Lit by a point light: the floor's indirect next to the wall, all of it light -> metal
+    -> floor, agrees with Cycles within 35 %, and is gone without the glossy reflectance."""
+    pytest.importorskip("bpy")
+    metal_wall_scene(world=False)
+    scene = glossy_bounce_against_cycles(tmp_path, next_to_the_wall, 50,
+                                         "floor next to the metal wall")
+    assert scene.lights
 
 
 @pytest.mark.bpy
@@ -331,11 +347,11 @@ def test_floor_beside_a_metal_wall_under_a_uniform_world_against_cycles(tmp_path
     reflects (camera -> floor -> metal -> World, one bounce); LPV's World surfels on the wall
     carry it with their glossy reflectance, around the wall's normal. Within 35 % of Cycles,
     and gone without the glossy reflectance."""
-    ours, cyc, dark = metal_wall_against_cycles(tmp_path, world=True)
-    ratio = ours.mean() / cyc.mean()
-    print(f"\nfloor next to the metal wall under the World, LPV / Cycles indirect: {ratio:.3f}")
-    assert 0.65 < ratio < 1.35
-    assert dark.mean() < 0.05 * cyc.mean()
+    pytest.importorskip("bpy")
+    metal_wall_scene(world=True)
+    scene = glossy_bounce_against_cycles(tmp_path, next_to_the_wall, 50,
+                                         "floor next to the metal wall under the World")
+    assert not scene.lights and scene.world is not None
 
 
 @pytest.mark.bpy
@@ -345,17 +361,11 @@ def test_wall_lit_by_a_panels_reflection_in_a_metal_floor_against_cycles(tmp_pat
     bounce). LPV's mirror VPLs of the emitter's light (sources.emitter_mirror_vpls) carry it
     along the mirror direction of each surfel's ray from the panel: within 35 % of Cycles over
     the wall, and gone without the glossy reflectance."""
-    bpy = pytest.importorskip("bpy")
-
-    import lpv_core as core
-    from lpv_addon.render import cycles
+    pytest.importorskip("bpy")
     from lpv_addon.scene_io import demo
-    from lpv_addon.scene_io.extract import extract_scene
-    from lpv_core.render.error import indirect_term
-    from tools import report, scenes
+    from tools import scenes
 
-    res = (48, 48)
-    sc = demo.new_scene("panel_over_metal", res, True)
+    sc = demo.new_scene("panel_over_metal", RES, True)
     box = ((-2, -2, 0), (2, 2, 2))
     demo.add_mesh_object(sc, "Floor", demo.box_geometry(*box, ["-z"], inward=True),
                          scenes.principled_material("Metal", (0.9, 0.9, 0.9), 1.0, 0.3))
@@ -365,24 +375,10 @@ def test_wall_lit_by_a_panels_reflection_in_a_metal_floor_against_cycles(tmp_pat
              [(0, 1, 2, 3)])
     demo.add_mesh_object(sc, "Panel", panel, scenes.emission_material("Glow", (1, 1, 1), 20.0))
     demo.add_camera(sc, (-1.6, 0.0, 1.0), (2.0, 0.0, 1.0), lens_mm=24.0)
-    exr = tmp_path / "panel.exr"
-    cycles.render_cycles_passes(str(exr), samples=64, resolution=res)
-    cyc = indirect_term(report._read_exr(str(exr)))[..., :3]
-    scene = extract_scene(bpy.context.evaluated_depsgraph_get(), bpy.context.scene, res)
+
+    def wall(p):
+        return (p[..., 0] > 1.999) & (p[..., 2] > 0.3) & (np.abs(p[..., 1]) < 1.5)
+
+    scene = glossy_bounce_against_cycles(tmp_path, wall, 200,
+                                         "wall lit by the panel's reflection")
     assert not scene.lights and scene.world is None
-    raster = core.render.raster.Rasterizer()
-    eng = report._make_engine(raster)
-    ours = indirect_term(report.run_lpv(scene, scene.settings, eng, 1)["passes"])[..., :3]
-    covered, pos, _, _, _ = raster.gbuffer(scene.camera.view, scene.camera.projection, *res)
-    p = np.full((*covered.shape, 3), np.nan)
-    p[covered] = pos
-    with np.errstate(invalid="ignore"):
-        wall = (p[..., 0] > 1.999) & (p[..., 2] > 0.3) & (np.abs(p[..., 1]) < 1.5)
-    assert wall.sum() > 200 and cyc[wall].mean() > 0
-    ratio = ours[wall].mean() / cyc[wall].mean()
-    print(f"\nwall lit by the panel's reflection, LPV / Cycles indirect: {ratio:.3f}")
-    assert 0.65 < ratio < 1.35
-    bare = dataclasses.replace(scene, materials=[
-        dataclasses.replace(m, specular=np.zeros(3, np.float32)) for m in scene.materials])
-    dark = indirect_term(report.run_lpv(bare, bare.settings, eng, 1)["passes"])[..., :3]
-    assert dark[wall].mean() < 0.05 * cyc[wall].mean()
