@@ -72,8 +72,6 @@ def render_directions(index: int = 0, sets: int = 1) -> np.ndarray:
                                                                 [0.0, 0.0, 1.0]])
 
 
-
-
 def cells(world: World, k: int | None = None,
           directions: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(directions (K, 3), solid angles w_k (K,), radiance (K, 3)): the World's map averaged
