@@ -910,11 +910,11 @@ def light_key(light) -> tuple:
     return (light.type, np.asarray(light.matrix, np.float64).tobytes(),
             np.asarray(light.color, np.float64).tobytes(), float(light.power),
             float(light.spot_size), float(light.spot_blend), tuple(light.size),
-            bool(light.cast_shadow))
+            bool(light.cast_shadow), float(light.radius), bool(light.soft_falloff))
 
 
 _LIGHT_SCALARS = operator.attrgetter("type", "power", "spot_size", "spot_blend", "size",
-                                     "cast_shadow", "gi_intensity")
+                                     "cast_shadow", "radius", "soft_falloff", "gi_intensity")
 
 
 def _lights_digest(lights) -> list:

@@ -55,7 +55,12 @@ def texel_flux(light: Light, view: lights_mod.LightView, rows: np.ndarray, cols:
     to_surf = position - light.position
     dist2 = np.einsum("nc,nc->n", to_surf, to_surf)
     cos_s = np.abs(np.einsum("nc,nc->n", normal, dirs))
-    return incident, solid * dist2 / np.maximum(cos_s, 0.05)
+    area = solid * dist2 / np.maximum(cos_s, 0.05)
+    if light.type in ("POINT", "SPOT") and light.radius > 0:  # the round emitter's irradiance
+        inten = lights_mod.intensity(light, dirs)
+        inten[lights_mod.inside_sphere(light, dist2)] = light.power / (4.0 * np.pi)
+        incident = inten * lights_mod.round_geometry(light, cos_s, dist2) * area
+    return incident, area
 
 
 def render_rsm(raster: Rasterizer, light: Light, bounds, resolution: int, fit=None) -> RSM:

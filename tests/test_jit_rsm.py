@@ -36,6 +36,8 @@ def _rsms(light_type: str, resolution: int = 64, **light_changes):
     ("SUN", {}),
     ("AREA", {}),
     ("SPOT", {"color": np.array([1.0, 0.0, 0.5])}),  # a colour channel with no flux
+    ("POINT", {"radius": 0.5}),  # a disk facing each texel (round_geometry)
+    ("SPOT", {"radius": 0.5, "soft_falloff": False}),  # a sphere, the ceiling inside it
 ])
 def test_compiled_rsm_matches_numpy(light_type, changes):
     ref, got = _rsms(light_type, **changes)

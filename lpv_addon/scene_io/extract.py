@@ -581,6 +581,7 @@ def light_from_object(ob: bpy.types.Object, matrix: np.ndarray) -> core.scene.Li
         spot_size=float(getattr(light, "spot_size", math.pi / 4.0)),
         spot_blend=float(getattr(light, "spot_blend", 0.15)),
         radius=float(getattr(light, "shadow_soft_size", 0.0)),
+        soft_falloff=bool(getattr(light, "use_soft_falloff", True)),
         size=size,
         gi_intensity=gi,
         gi_color=gi_color,

@@ -74,7 +74,7 @@ def irradiance(light: Light, positions: np.ndarray, normals: np.ndarray,
     out = np.empty(pos.shape[0], np.float64)
     args = (kind, np.asarray(light.position, np.float64), np.asarray(light.direction, np.float64),
             float(light.power), cos_half, smooth, polys, radiance, tan_half, norm,
-            *_shadow_args(shadow, src, light), pos, nrm, out)
+            *round_args(light), *_shadow_args(shadow, src, light), pos, nrm, out)
     soft = shadow is not None and src is not None and src.kind != HARD
     # soft shadows make some rows of the frame many times dearer than others (in halves
     # one thread idled: the Cornell box's spot frame's halves took 1.7 and 20 ms); a hard
@@ -188,6 +188,34 @@ def _polygon(poly, px, py, pz, nx, ny, nz):  # pragma: no cover
     return 0.5 * abs(total)
 
 
+def round_args(light: Light) -> tuple[float, bool]:
+    """(r^2, sphere) of a POINT or SPOT light for ``round_geometry`` (r^2 0: a point)."""
+    r2 = float(light.radius) ** 2 if light.type in ("POINT", "SPOT") else 0.0
+    return r2, not bool(light.soft_falloff)
+
+
+@jit.kernel
+def round_geometry(cos_r, d2, r2, sphere):  # pragma: no cover - compiled
+    """lights.round_geometry of one receiver (cos_r signed, d2 > 0), with
+    lights.cone_projected_solid_angle written out."""
+    if not r2 > 0:
+        return max(cos_r, 0.0) / d2
+    s2 = min(r2 / d2, 1.0) if sphere else r2 / (r2 + d2)
+    if s2 >= 1.0:
+        return 1.0 / r2  # inside the sphere: pi L over the hemisphere, L = I / (pi r^2)
+    c = min(max(cos_r, -1.0), 1.0)
+    sin_a = np.sqrt(s2)
+    if c >= sin_a:
+        return s2 * c / r2
+    if c <= -sin_a:
+        return 0.0
+    st = np.sqrt(max(1.0 - c * c, 1e-30))
+    x = np.sqrt(max(1.0 / s2 - 1.0, 0.0))
+    y = min(max(-x * c / st, -1.0), 1.0)
+    g = st * np.sqrt(1.0 - y * y)
+    return ((c * np.arccos(y) - x * g) * s2 + np.arctan2(g, x)) / (np.pi * r2)
+
+
 @jit.kernel
 def _area(polys, radiance, tan_half, norm, lp, axis, px, py, pz, nx, ny, nz):  # pragma: no cover
     """lights.area_irradiance of one receiver."""
@@ -214,10 +242,10 @@ def _area(polys, radiance, tan_half, norm, lp, axis, px, py, pz, nx, ny, nz):  #
 
 @jit.kernel
 def _direct_kernel(kind, lp, axis, power, cos_half, smooth, polys, radiance, tan_half, norm,
-                   mats, ortho, scale, depths, face_view, single, res, skind, su, sv, srad,
+                   lrad2, sphere, mats, ortho, scale, depths, face_view, single, res, skind, su, sv, srad,
                    near, hashes, pyr, levs, pos, nrm, out, m0, m1):  # pragma: no cover
-    """``irradiance`` (per unit colour) of points m0..m1-1: lights.intensity and the cosine
-    over d^2 (the sun: E cos; area lights: the contour integral), then for lit points with
+    """``irradiance`` (per unit colour) of points m0..m1-1: lights.intensity and
+    lights.round_geometry (the sun: E cos; area lights: the contour integral), then for lit points with
     views their ``visibility``."""
     four_pi = 4.0 * np.pi
     for m in range(m0, m1):
@@ -232,8 +260,8 @@ def _direct_kernel(kind, lp, axis, power, cos_half, smooth, polys, radiance, tan
             d2 = max(tx_ * tx_ + ty_ * ty_ + tz_ * tz_, 1e-30)
             root = np.sqrt(d2)
             wx, wy, wz = tx_ / root, ty_ / root, tz_ / root
-            cos_r = max(nx * wx + ny * wy + nz * wz, 0.0)
-            if kind == 0:
+            cos_r = nx * wx + ny * wy + nz * wz
+            if kind == 0 or (sphere and d2 <= lrad2):  # inside a spot's sphere: no cone
                 inten = power / four_pi
             else:
                 cos_a = -wx * axis[0] + -wy * axis[1] + -wz * axis[2]
@@ -242,7 +270,7 @@ def _direct_kernel(kind, lp, axis, power, cos_half, smooth, polys, radiance, tan
                     inten = power / four_pi * (x * x * (3.0 - 2.0 * x))
                 else:
                     inten = power / four_pi * (1.0 if cos_a > cos_half else 0.0)
-            e = inten * cos_r / d2
+            e = inten * round_geometry(cos_r, d2, lrad2, sphere)
         if e > 0 and mats.shape[0] > 0:
             e *= _visibility(lp, mats, ortho, scale, depths, face_view, single, res, skind, su,
                              sv, srad, near, hashes, pyr, levs, px, py, pz, nx, ny, nz)

@@ -10,6 +10,7 @@ from ..render.raster import TRIANGLE_SPLIT
 from ..runtime import jit, pool
 from ..scene import lights as lights_mod
 from ..scene.model import Light
+from .direct import round_args, round_geometry
 
 KINDS = {"POINT": 0, "SPOT": 1, "AREA": 2, "SUN": 3}  # light type -> the kernel's kind
 SPLIT_MIN = 64  # rows: smaller maps are converted on one thread
@@ -34,7 +35,7 @@ def view_vpls(light: Light, view: lights_mod.LightView, p4, n4, reflectance, ori
             np.asarray(light.direction, np.float64), KINDS[light.type], float(light.power),
             cos_half,
             (1.0 - cos_half) * float(light.spot_blend) if light.type == "SPOT" else 0.0,
-            np.asarray(light.color, np.float64), size)
+            *round_args(light), np.asarray(light.color, np.float64), size)
     glossy = reflectance.shape[1] == 6
     m = size * size if glossy else 0
     out = (np.empty((size * size, 3)), np.empty((size * size, 3)), np.empty((size * size, 3)),
@@ -99,11 +100,12 @@ def _move_rows_kernel(pos, nrm, flux, area, src, dst, count):
 
 @jit.kernel
 def _vpl_kernel(p4, n4, reflectance, origin, ortho, tan_half, half_extent, right, up, fwd, eye,
-                axis, kind, power, cos_half, smooth, color, size, glossy, row0, row1, pos, nrm,
+                axis, kind, power, cos_half, smooth, lrad2, sphere, color, size, glossy, row0, row1, pos, nrm,
                 flux, area, mpos, mnrm, mflux, marea, mlift):
     """One pass over rows row0..row1-1 of a view's texels (rows top-first, as ``p4`` is given):
     the VPL of every covered texel that reflects a finite, non-zero flux, with the formulas of
-    texel_rays, texel_flux and lights.intensity (point, spot cone smoothstep, area cosine; sun:
+    texel_rays, texel_flux and lights.intensity (point, spot cone smoothstep, with a radius
+    lights.round_geometry; area cosine; sun:
     irradiance ``power`` times the texel area), written in texel order into pos, nrm, flux,
     area from row row0 * size on; ``glossy``: also each texel's mirror VPL (rsm.mirror_vpls)
     into mpos, mnrm, mflux, marea, mlift likewise. Returns how many of each. The texel's reflectance
@@ -170,8 +172,13 @@ def _vpl_kernel(p4, n4, reflectance, origin, ortho, tan_half, half_extent, right
                         strength = lambert * max(cos_a, 0.0)
                 incident = strength * solid
                 tx, ty, tz = px - eye[0], py - eye[1], pz - eye[2]
-                a = (solid * (tx * tx + ty * ty + tz * tz)
-                     / max(abs(nx * dx + ny * dy + nz * dz), 0.05))
+                d2 = tx * tx + ty * ty + tz * tz
+                cos_s = abs(nx * dx + ny * dy + nz * dz)
+                a = solid * d2 / max(cos_s, 0.05)
+                if lrad2 > 0:  # a round emitter's irradiance (rsm.texel_flux)
+                    if sphere and d2 <= lrad2:  # inside a spot's sphere: no cone falloff
+                        strength = point
+                    incident = strength * round_geometry(cos_s, d2, lrad2, sphere) * a
             if glossy:
                 g0 = incident * s0 * color[0]
                 g1 = incident * s1 * color[1]

@@ -1,6 +1,7 @@
 """Direct diffuse lighting with shadow maps, in Cycles' units.
 
-Irradiance at a receiver (W/m^2): I(w) cos(theta) / d^2 for point and spot lights, E cos(theta)
+Irradiance at a receiver (W/m^2): I(w) cos(theta) / d^2 for point and spot lights (with a
+radius: Cycles' round emitter cut at the horizon, lights.round_geometry), E cos(theta)
 for the sun, and for area lights their radiance P / (pi A) times the exact contour integral
 over the emitter (lights.area_irradiance). Cycles' "Diffuse Direct" pass is irradiance / pi
 (times the light colour); multiplied by "Diffuse Color" it gives the reflected radiance.
@@ -648,8 +649,10 @@ def irradiance(
         d2 = np.einsum("ij,ij->i", to_light, to_light)
         d2 = np.maximum(d2, 1e-30)
         w = to_light / np.sqrt(d2)[:, None]
-        cos_r = np.maximum(np.einsum("ij,ij->i", normals, w), 0.0)
-        e = lights_mod.intensity(light, -w) * cos_r / d2
+        cos_r = np.einsum("ij,ij->i", normals, w)
+        inten = lights_mod.intensity(light, -w)
+        inten[lights_mod.inside_sphere(light, d2)] = light.power / (4.0 * np.pi)
+        e = inten * lights_mod.round_geometry(light, cos_r, d2)
     if shadow is not None:
         lit = e > 0
         vis = np.zeros_like(e)

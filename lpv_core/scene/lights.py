@@ -4,6 +4,9 @@ Radiant intensity (W/sr) per direction, matching Cycles:
 - point: I = P / (4 pi), isotropic;
 - spot: the point's intensity times Cycles' cone falloff
   smoothstep((cos a - cos(size/2)) / ((1 - cos(size/2)) * blend)) ("as if a point");
+  with a radius r both are Cycles' round emitter of radiance I / (pi r^2), a disk facing the
+  receiver (Soft Falloff, Blender's default) or a sphere, seen as a cone of directions cut at
+  the receiver's horizon (round_geometry);
 - area: a Lambertian emitter of total flux P, I(theta) = P cos(theta) / pi (treated as a
   point at its centre: the documented approximation, exact for distances >> its size);
 - sun: irradiance E (W/m^2) on a surface facing it, no distance falloff.
@@ -61,6 +64,53 @@ def intensity(light: Light, directions: np.ndarray) -> np.ndarray:
     if light.type == "AREA":
         return light.power / np.pi * np.maximum(cos_a, 0.0)
     raise ValueError(f"light '{light.name}': intensity() is not defined for {light.type}")
+
+
+def cone_projected_solid_angle(cos_t: np.ndarray, sin2_a: np.ndarray) -> np.ndarray:
+    """The cosine-weighted solid angle above the horizon of a cone of directions of half-angle
+    a (sin^2 a given) whose axis makes angle t with the normal: pi sin^2 a cos t while the cone
+    is above the horizon, 0 below it, and between them the horizon-clipped closed form of the
+    spherical cap [Snyder 1996, "Area light sources for real-time graphics"]; a cone of
+    sin^2 a >= 1 (a receiver inside a sphere) sees the whole hemisphere: pi."""
+    c = np.clip(np.asarray(cos_t, np.float64), -1.0, 1.0)
+    s2 = np.minimum(np.asarray(sin2_a, np.float64), 1.0)
+    c, s2 = np.broadcast_arrays(c, s2)
+    sin_a = np.sqrt(s2)
+    out = np.where(c >= sin_a, np.pi * s2 * c, 0.0)
+    cut = (c < sin_a) & (c > -sin_a)
+    if np.any(cut):
+        cc, ss = c[cut], s2[cut]
+        st = np.sqrt(np.maximum(1.0 - cc * cc, 1e-30))
+        x = np.sqrt(np.maximum(1.0 / ss - 1.0, 0.0))  # cot a
+        y = np.clip(-x * cc / st, -1.0, 1.0)
+        g = st * np.sqrt(1.0 - y * y)
+        out[cut] = (cc * np.arccos(y) - x * g) * ss + np.arctan2(g, x)
+    return np.where(np.asarray(sin2_a) >= 1.0, np.pi, out)
+
+
+def round_geometry(light: Light, cos_r: np.ndarray, d2: np.ndarray) -> np.ndarray:
+    """Irradiance per unit radiant intensity (E / I, m^-2) of a POINT or SPOT light at
+    receivers whose normal makes ``cos_r`` (signed) with the direction to its centre, at
+    squared distance ``d2``: cos_r / d2 without a radius; with one, Cycles' emitter of
+    radiance I / (pi r^2) (kernel/light/point.h): a disk facing the receiver (sin^2 a =
+    r^2 / (r^2 + d^2), Soft Falloff) or a sphere (r^2 / d^2), cut at the horizon
+    (cone_projected_solid_angle); far away both tend to the point's cos_r / d^2."""
+    cos_r = np.asarray(cos_r, np.float64)
+    d2 = np.maximum(np.asarray(d2, np.float64), 1e-30)
+    r2 = float(light.radius) ** 2
+    if not r2 > 0:
+        return np.maximum(cos_r, 0.0) / d2
+    sin2 = r2 / (r2 + d2) if light.soft_falloff else np.minimum(r2 / d2, 1.0)
+    return cone_projected_solid_angle(cos_r, sin2) / (np.pi * r2)
+
+
+def inside_sphere(light: Light, d2: np.ndarray) -> np.ndarray:
+    """Receivers inside a SPOT light's sphere (Soft Falloff off), which Cycles lights without
+    the spot's cone falloff (kernel/light/spot.h): there its intensity is the point's."""
+    d2 = np.asarray(d2, np.float64)
+    if light.type != "SPOT" or light.soft_falloff or not light.radius > 0:
+        return np.zeros(d2.shape, bool)
+    return d2 <= float(light.radius) ** 2
 
 
 def light_views(light: Light, bounds: tuple[np.ndarray, np.ndarray],

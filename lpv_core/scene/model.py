@@ -66,6 +66,7 @@ class Light:
     spot_size: float = np.pi / 4.0  # full cone angle (rad)
     spot_blend: float = 0.15
     radius: float = 0.0  # shadow_soft_size
+    soft_falloff: bool = True  # point / spot: use_soft_falloff (a disk facing the receiver)
     size: tuple[float, float] = (1.0, 1.0)  # area light extent (m) along local X and Y
     gi_intensity: float = 1.0
     gi_color: np.ndarray = field(default_factory=lambda: np.ones(3, np.float32))  # GI tint
