@@ -225,7 +225,8 @@ class Engine:
                                origin=origin, surface=surface,
                                specular=scene.specular_per_triangle(),
                                shares=textures.view_shares(scene.materials,
-                                                           scene.material_index))
+                                                           scene.material_index),
+                               hidden=scene.ray_hidden)
             if self.raster.surface is not None and stats is not None:
                 stats.info["textures"] = self.raster.surface.info
 
@@ -846,9 +847,11 @@ def _digest(*parts) -> str:
 
 
 def geometry_key(scene: Scene) -> str:
-    """Digest of the geometry and the caster / receiver / occluder flags (planner decisions)."""
+    """Digest of the geometry, the caster / receiver / occluder flags (planner decisions) and
+    the ray visibility (what the shadow and sky maps hold)."""
+    hidden = () if scene.ray_hidden is None else (scene.ray_hidden,)
     return _digest(scene.positions, scene.flag("caster"), scene.flag("occluder"),
-                   scene.flag("receiver"))
+                   scene.flag("receiver"), *hidden)
 
 
 def reflectance_key(scene: Scene) -> str:

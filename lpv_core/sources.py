@@ -15,6 +15,7 @@ import numpy as np
 from . import emitters, mirror_lobe, propagation, sky
 from .geometry_volume import surfels
 from .scene import textures
+from .scene.model import HIDDEN_FROM_CAMERA
 
 
 @dataclass
@@ -272,17 +273,19 @@ def emitter_mirror_vpls(clusters: list, material: int, positions: np.ndarray,
     return tuple(parts)
 
 
-def camera_light(engine, scene, projection, mask: np.ndarray, combined: np.ndarray) -> None:
+def camera_light(engine, scene, projection, mask: np.ndarray, combined: np.ndarray,
+                 world: bool = True) -> None:
     """Add what the camera sees of the sources to ``combined`` (H, W, 4): each emitting
-    surface's radiance where it is seen (its triangle per pixel, the RSM pass's index) and the
-    World along the view ray where no surface is (bilinear in its map)."""
+    surface's radiance where it is seen (its triangle per pixel, the RSM pass's index) and,
+    with ``world`` (not Film > Transparent), the World along the view ray where no surface is
+    (bilinear in its map)."""
     h, w = mask.shape
     mats = emitters.emissive_materials(scene)
     if mats and mask.any():
         raster = engine.raster
         fbo = raster._fbo(w, h, 2)
         raster._draw(raster.rsm_program, raster._rsm_vao, fbo, scene.camera.view, projection,
-                     False)
+                     False, HIDDEN_FROM_CAMERA)
         pos, nrm = raster._targets(fbo, (0, 1), w, h)
         tri = raster.triangles(pos[mask], nrm[mask])
         table = np.array([m.emission for m in scene.materials], np.float32)
@@ -290,7 +293,7 @@ def camera_light(engine, scene, projection, mask: np.ndarray, combined: np.ndarr
         glow = np.zeros((tri.size, 3), np.float32)
         glow[ok] = table[scene.material_index[tri[ok]]]
         combined[..., :3][mask] += glow
-    if not sky.lit(scene.world) and not mask.all():
+    if world and not sky.lit(scene.world) and not mask.all():
         from .render.raster import PixelRays
 
         ys, xs = np.nonzero(~mask)

@@ -125,7 +125,8 @@ def save_scene(path: str, scene: Scene) -> None:
         "positions": scene.positions, "normals": scene.normals,
         "material_index": scene.material_index,
     }
-    for name in ("caster", "occluder", "receiver", "object_index", "uvs", "corner_colors"):
+    for name in ("caster", "occluder", "receiver", "object_index", "uvs", "corner_colors",
+                 "ray_hidden"):
         value = getattr(scene, name)
         if value is not None:
             arrays[name] = np.asarray(value)
@@ -138,6 +139,7 @@ def save_scene(path: str, scene: Scene) -> None:
         "object_names": list(scene.object_names),
         "dropped": dict(scene.dropped),
         "approximated": list(scene.approximated),
+        "film_transparent": bool(scene.film_transparent),
         "camera": None if scene.camera is None else _as_json(scene.camera),
         "world": _world_json(scene.world, folder),
     }
@@ -210,12 +212,14 @@ def load_scene(path: str, held: dict | None = None) -> Scene:
     settings = GISettings().updated(**{k: v for k, v in meta["settings"].items()
                                        if k in GISettings.__dataclass_fields__})
     opt = {k: (data[k] if k in data.files else None)
-           for k in ("caster", "occluder", "receiver", "object_index", "uvs", "corner_colors")}
+           for k in ("caster", "occluder", "receiver", "object_index", "uvs", "corner_colors",
+                     "ray_hidden")}
     return Scene(
         positions=data["positions"], normals=data["normals"],
         material_index=data["material_index"], materials=materials, lights=lights,
         camera=camera, settings=settings, object_names=meta["object_names"],
         dropped=meta["dropped"], areas=areas, approximated=meta.get("approximated", []),
+        film_transparent=bool(meta.get("film_transparent", False)),
         world=world,
         **opt,
     )

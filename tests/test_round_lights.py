@@ -9,7 +9,6 @@ import dataclasses
 
 import numpy as np
 import pytest
-
 from conftest import surface_points
 
 from lpv_core import engine, rsm

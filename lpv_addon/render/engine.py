@@ -63,15 +63,13 @@ def render_passes(scene, stop=lambda: False) -> tuple[dict, dict]:
         raise Cancelled from None
 
 
-def result_pixels(name: str, passes: dict, transparent: bool) -> np.ndarray | None:
-    """A pass as Blender's render result holds it (bottom row first, flat); with Film >
-    Transparent, Combined's alpha is 0 where no surface was seen (nothing lit, no colour)."""
+def result_pixels(name: str, passes: dict) -> np.ndarray | None:
+    """A pass as Blender's render result holds it (bottom row first, flat). Film >
+    Transparent is the core's (Scene.film_transparent: Combined's alpha is the coverage and
+    no World behind it)."""
     arr = passes.get(name)
     if arr is None:
         return None
-    if name == "Combined" and transparent:
-        arr = arr.copy()
-        arr[..., 3] = (np.concatenate([passes[n] for n, _ in PASSES], axis=2) > 0).any(axis=2)
     return np.ascontiguousarray(arr[::-1], np.float32).ravel()
 
 
@@ -120,7 +118,7 @@ class LPVRenderEngine(bpy.types.RenderEngine):
             return
         result = self.begin_result(0, 0, w, h, layer=depsgraph.view_layer.name)
         for rpass in result.layers[0].passes:
-            pixels = result_pixels(rpass.name, passes, scene.render.film_transparent)
+            pixels = result_pixels(rpass.name, passes)
             if pixels is not None:
                 rpass.rect.foreach_set(pixels)
         self.end_result(result)

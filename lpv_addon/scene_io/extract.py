@@ -72,7 +72,7 @@ def extract_scene(
         # until the next update), and the active depsgraph writes animated values back to it.
         scene = depsgraph.scene
     timer = _Timer(timings)
-    geo = _GeometryCollector(timer)
+    geo = _GeometryCollector(timer, depsgraph.view_layer)
     lights: list = []
     dropped = dict.fromkeys(
         ("objects_without_geometry", "objects_degenerate_transform", "unsupported_objects"), 0
@@ -122,9 +122,10 @@ def extract_scene(
         result = core.scene.make_scene(
             positions, normals, mat_index, geo.materials, lights, camera, settings,
             object_index=obj_index, object_names=geo.object_names, areas=areas,
-            **geo.flags(obj_index), **geo.corner_arrays(), world=world,
+            **geo.flags(obj_index, mat_index), **geo.corner_arrays(), world=world,
         )
     result.approximated.extend(geo.approximated + world_notes)
+    result.film_transparent = bool(scene.render.film_transparent)
     for key, n in geo.defaulted.items():
         if n:
             result.dropped[f"{key}_nonfinite_or_negative_defaulted"] = n
@@ -157,8 +158,9 @@ def _visible(inst, ob, render_visibility: bool) -> bool:
 class _GeometryCollector:
     """Gathers world-space triangle chunks, caching per-mesh local arrays across instances."""
 
-    def __init__(self, timer: _Timer) -> None:
+    def __init__(self, timer: _Timer, view_layer=None) -> None:
         self.timer = timer
+        self.view_layer = view_layer  # its collections' Holdout and Indirect Only
         self.cache: dict[int, tuple] = {}
         self.chunks: list[tuple] = []
         self.materials: list = []
@@ -169,6 +171,7 @@ class _GeometryCollector:
         self.object_names: list[str] = []
         self._object_ids: dict[str, int] = {}
         self.object_flags: list[tuple[bool, bool, bool]] = []  # caster, occluder, receiver
+        self.object_hidden: list[int] = []  # ray_hidden bits per object (object_ray_hidden)
 
     def add(self, ob, matrix: np.ndarray, count) -> None:
         """Add one evaluated mesh-like object instance with its world matrix."""
@@ -194,6 +197,7 @@ class _GeometryCollector:
         if oid == len(self.object_names):
             self.object_names.append(ob.name)
             self.object_flags.append(object_gi_flags(ob))
+            self.object_hidden.append(object_ray_hidden(ob, self.view_layer))
         self.chunks.append((pos, nrm, matrix, mat, oid, uvs, cols))
 
     def _corners(self, ob, infos, slot, layers, uv_maps, colors):
@@ -276,13 +280,20 @@ class _GeometryCollector:
             self.infos.append(info)
         return mid
 
-    def flags(self, object_index: np.ndarray) -> dict:
-        """Per-triangle caster/occluder/receiver arrays from Object.lpv (None: all on)."""
+    def flags(self, object_index: np.ndarray, material_index: np.ndarray) -> dict:
+        """Per-triangle caster/occluder/receiver arrays from Object.lpv (None: all on) and
+        ray_hidden bits from the objects' visibility and Holdout shaders (None: none)."""
         table = np.array(self.object_flags or [(True, True, True)], bool).reshape(-1, 3)
         out = {}
         for i, name in enumerate(("caster", "occluder", "receiver")):
             if not table[:, i].all():
                 out[name] = table[object_index, i] if object_index.size else None
+        hidden = np.array(self.object_hidden or [0], np.uint8)
+        held = np.array([i.holdout for i in self.infos] or [False], bool)
+        if (hidden.any() or held.any()) and object_index.size:
+            bits = hidden[object_index]
+            bits[held[np.clip(material_index, 0, held.size - 1)]] |= core.scene.model.HOLDOUT
+            out["ray_hidden"] = bits
         return out
 
     def arrays(self):
@@ -508,12 +519,32 @@ def _to_world(pos, nrm, matrix: np.ndarray, out_pos: np.ndarray, out_nrm: np.nda
 
 
 def object_gi_flags(ob) -> tuple[bool, bool, bool]:
-    """(caster, occluder, receiver) from Object.lpv (all on without the add-on's properties).
-    Instances take the flags of the instanced object."""
+    """(caster, occluder, receiver) from Object.lpv (all on without the add-on's properties),
+    casting and occluding only if diffuse rays see the object (Object.visible_diffuse, as in
+    Cycles: its light bounces nowhere and nothing's bounce is blocked by it). Instances take
+    the flags of the instanced object."""
+    diffuse = bool(getattr(ob, "visible_diffuse", True))
     props = getattr(ob, "lpv", None)
     if props is None or not hasattr(props, "gi_caster"):
-        return True, True, True
-    return bool(props.gi_caster), bool(props.gi_occluder), bool(props.gi_receiver)
+        return diffuse, diffuse, True
+    return (bool(props.gi_caster) and diffuse, bool(props.gi_occluder) and diffuse,
+            bool(props.gi_receiver))
+
+
+def object_ray_hidden(ob, view_layer=None) -> int:
+    """Scene.ray_hidden bits of an object from Cycles' visibility: Camera off or in an
+    Indirect Only collection (hidden from the camera), Shadow off, Holdout (the object's or
+    its collection's in ``view_layer``)."""
+    model = core.scene.model
+    holdout, indirect = bool(getattr(ob, "is_holdout", False)), False
+    if view_layer is not None and hasattr(ob, "holdout_get"):
+        orig = ob.original
+        holdout = holdout or bool(orig.holdout_get(view_layer=view_layer))
+        indirect = bool(orig.indirect_only_get(view_layer=view_layer))
+    camera = bool(getattr(ob, "visible_camera", True)) and not indirect
+    return ((0 if camera else model.HIDDEN_FROM_CAMERA)
+            | (0 if getattr(ob, "visible_shadow", True) else model.CASTS_NO_SHADOW)
+            | (model.HOLDOUT if holdout else 0))
 
 
 def area_from_object(ob, inst) -> core.scene.Area | None:

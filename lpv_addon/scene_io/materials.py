@@ -91,6 +91,7 @@ class MaterialInfo:
     color_attribute: str | None = None
     notes: list[str] = field(default_factory=list)
     defaulted_texels: int = 0  # non-finite or negative texels of its images set to 0
+    holdout: bool = False  # its surface is a Holdout shader: its pixels are cut out
 
 
 _MEANS: dict[str, np.ndarray] = {}  # pixels' digest -> their mean colour
@@ -794,10 +795,13 @@ def material_info(mat) -> MaterialInfo:
     tree = getattr(mat, "node_tree", None)
     use_nodes = tree is not None and (bpy.app.version >= (5, 0, 0) or mat.use_nodes)
     output = _active_output(tree) if use_nodes else None
+    holdout = False
     if output is not None:
         surface = output.inputs.get("Surface")
         diffuse, emission = ev.shader(surface)
         glossy = glossy_reflectance(ev, surface)
+        node = ev.resolve(surface)[0] if surface is not None else None
+        holdout = node is not None and node.bl_idname == "ShaderNodeHoldout"
     m = core.scene.Material(mat.name, np.clip(diffuse.const, 0.0, None).astype(np.float32))
     m.emission = np.clip(np.asarray(emission, np.float64), 0.0, None).astype(np.float32)
     if output is not None:
@@ -809,7 +813,7 @@ def material_info(mat) -> MaterialInfo:
             m.diffuse_share = np.ascontiguousarray(share, np.float32)
     m.specular = np.clip(np.nan_to_num(glossy), 0.0, None).astype(np.float32)
     info = MaterialInfo(m, color_attribute=diffuse.attr, notes=ev.notes,
-                        defaulted_texels=ev.defaulted)
+                        defaulted_texels=ev.defaulted, holdout=holdout)
     if diffuse.pixels is not None:
         node = diffuse.node
         m.texture = core.scene.Texture(

@@ -15,6 +15,7 @@ VERTEX_SHADER = """
 #version 330
 uniform vec2 tiles;  // tiles per row, rows
 in vec3 in_pos;
+in float in_recv;  // raster.VERTEX_SHADER's code: bit 2, casts no shadow (left out)
 in vec4 c0;  // columns of the instance's view_proj (on origin-relative positions)
 in vec4 c1;
 in vec4 c2;
@@ -32,7 +33,7 @@ void main() {
     gl_ClipDistance[3] = c.w + c.y;
     v_depth = -(dot(row.xyz, in_pos) + row.w);
     c.xy = ((c.xy + c.w) * 0.5 + tile * c.w) / tiles * 2.0 - c.w;
-    gl_Position = c;
+    gl_Position = (int(in_recv + 0.5) & 4) != 0 ? vec4(0.0, 0.0, 2.0, 1.0) : c;
 }
 """
 
@@ -91,7 +92,7 @@ class DepthAtlas:
                 inst[i, 16:20] = view[2]
                 inst[i, 20:] = (i // ny, i % ny)
             buf = ctx.buffer(inst.tobytes())
-            vao = ctx.vertex_array(self.program, [(vbo, "3f 40x", "in_pos"),
+            vao = ctx.vertex_array(self.program, [(vbo, "3f 36x 1f", "in_pos", "in_recv"),
                                                   (buf, "4f 4f 4f 4f 4f 2f/i", "c0", "c1",
                                                    "c2", "c3", "row", "tile")])
             self.program["tiles"].value = (float(nx), float(ny))

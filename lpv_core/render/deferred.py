@@ -101,8 +101,8 @@ def _render_samples(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats,
     if scene.triangle_count:
         lo, hi = engine.upload(scene, stats)  # the LPV box: shadow maps cover it, not outliers
         with Timer(stats, "gbuffer"):
-            mask, pos, nrm, albedo, receiver = engine.raster.gbuffer(
-                scene.camera.view, projection, w, h, footprint)
+            mask, pos, nrm, albedo, receiver, holdout = engine.raster.gbuffer(
+                scene.camera.view, projection, w, h, footprint, holdout=True)
             color[mask] = albedo
         with Timer(stats, "direct"):
             e_dir = None
@@ -145,10 +145,23 @@ def _render_samples(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats,
                 diff_ind[mask] = e_ind / np.pi
         else:
             stats.skip("lookup", "all pixels", "no LPV (no GI-contributing light or geometry)")
+    # Cycles divides its diffuse light passes by the diffuse colour: where a surface has no
+    # diffuse part at all (a metal, glass, emission, holdout shader) they are 0
+    bare = ~(color > 0).any(axis=-1)
+    diff_dir[bare] = 0.0
+    diff_ind[bare] = 0.0
     combined = np.ones((h, w, 4), np.float32)
     combined[..., :3] = (diff_dir + diff_ind) * color
     seen = mask if scene.triangle_count else np.zeros((h, w), bool)
-    sources.camera_light(engine, scene, projection, seen, combined)  # emitters, the World
+    if scene.film_transparent:  # alpha: what covers the pixel (the samples' mean)
+        combined[..., 3] = seen
+    sources.camera_light(engine, scene, projection, seen, combined,  # emitters, the World
+                         world=not scene.film_transparent)
+    if scene.triangle_count and holdout.any():  # holdouts: 0 with alpha 0, as Cycles
+        cut = np.zeros((h, w), bool)
+        cut[mask] = holdout
+        for arr in (combined, diff_dir, diff_ind, color):
+            arr[cut] = 0.0
     passes = {
         "Combined": combined,
         "Diffuse Direct": diff_dir,

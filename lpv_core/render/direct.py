@@ -22,7 +22,7 @@ import numpy as np
 from ..kernels import direct as _compiled
 from ..runtime import jit
 from ..scene import lights as lights_mod
-from ..scene.model import Light
+from ..scene.model import CASTS_NO_SHADOW, Light
 from .raster import Rasterizer
 
 SEARCH_SIDE = 6  # blocker search: 6 x 6 strata over the light, plus the receiver's own texel
@@ -167,7 +167,8 @@ def source_of(light: Light, radius: float | None = None) -> Source:
 
 def render_shadow_map(raster: Rasterizer, light: Light, bounds, resolution: int,
                       fit=None) -> ShadowMap:
-    """Rasterise the light's views and keep the nearest occluder per texel: its distance from
+    """Rasterise the light's views and keep the nearest occluder per texel (objects that cast
+    no shadow left out): its distance from
     the light (depth along the view for the sun), in float32 from the positions relative to
     the rasteriser's origin as they are read back (no float64 copy of the frame: a 1024^2 map
     took 100 ms that way, most of it converting and subtracting 3M floats twice)."""
@@ -176,7 +177,7 @@ def render_shadow_map(raster: Rasterizer, light: Light, bounds, resolution: int,
     origin = np.asarray(raster.origin, np.float64)
     for i, view in enumerate(views):
         (target,) = raster.read(view.view, view.projection, resolution, resolution,
-                                ortho=view.ortho, targets=(0,))
+                                ortho=view.ortho, targets=(0,), hide=CASTS_NO_SHADOW)
         rel = target[..., :3]  # float32, relative to origin
         if view.ortho:  # depth = -(view @ p).z with p = rel + origin
             row = np.asarray(view.view, np.float64)[2]

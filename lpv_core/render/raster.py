@@ -14,12 +14,17 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..scene import textures
+from ..scene.model import HIDDEN_FROM_CAMERA
 
 _CTX = None
 
+# A triangle's in_recv: bit 0 receives GI, bits 1-3 its ray visibility (scene.model:
+# HIDDEN_FROM_CAMERA, CASTS_NO_SHADOW, HOLDOUT, shifted up by one). A pass leaves out the
+# triangles whose bits meet its ``hide`` mask: all three corners outside the clip volume.
 VERTEX_SHADER = """
 #version 330
 uniform mat4 view_proj;
+uniform int hide;
 in vec3 in_pos;
 in vec3 in_nrm;
 in vec3 in_alb;
@@ -29,14 +34,15 @@ out vec3 v_pos;
 out vec3 v_nrm;
 out vec3 v_alb;
 out vec3 v_refl;
-out float v_recv;
+flat out int v_code;
 void main() {
     v_pos = in_pos;
     v_nrm = in_nrm;
     v_alb = in_alb;
     v_refl = in_refl;
-    v_recv = in_recv;
-    gl_Position = view_proj * vec4(in_pos, 1.0);
+    v_code = int(in_recv + 0.5);
+    gl_Position = (v_code & hide) != 0 ? vec4(0.0, 0.0, 2.0, 1.0)
+                                       : view_proj * vec4(in_pos, 1.0);
 }
 """
 
@@ -50,7 +56,7 @@ in vec3 v_pos;
 in vec3 v_nrm;
 in vec3 v_alb;
 in vec3 v_refl;
-in float v_recv;
+flat in int v_code;
 layout(location = 0) out vec4 o_pos;
 layout(location = 1) out vec4 o_nrm;
 layout(location = 2) out vec4 o_alb;
@@ -60,8 +66,8 @@ void main() {
     vec3 to_eye = ortho == 1 ? -view_dir : eye - v_pos;
     if (dot(n, to_eye) < 0.0) n = -n;
     o_pos = vec4(v_pos - origin, 1.0);
-    o_nrm = vec4(n, 0.0);
-    o_alb = vec4(v_alb, v_recv);  // alpha: receives GI (Object.lpv.gi_receiver)
+    o_nrm = vec4(n, float((v_code >> 3) & 1));  // w: a holdout (Object.is_holdout)
+    o_alb = vec4(v_alb, float(v_code & 1));  // alpha: receives GI (Object.lpv.gi_receiver)
     o_refl = vec4(v_refl, 1.0);
 }
 """
@@ -74,14 +80,17 @@ void main() {
 RSM_VERTEX_SHADER = """
 #version 330
 uniform mat4 view_proj;
+uniform int hide;
 in vec3 in_pos;
 in vec3 in_nrm;
+in float in_recv;
 out vec3 v_pos;
 out vec3 v_nrm;
 void main() {
     v_pos = in_pos;
     v_nrm = in_nrm;
-    gl_Position = view_proj * vec4(in_pos, 1.0);
+    gl_Position = (int(in_recv + 0.5) & hide) != 0 ? vec4(0.0, 0.0, 2.0, 1.0)
+                                                   : view_proj * vec4(in_pos, 1.0);
 }
 """
 
@@ -233,14 +242,15 @@ class Rasterizer:
 
     def upload(self, positions, normals, albedo, reflectance, key=None, receiver=None,
                origin=None, surface: textures.Layout | None = None, specular=None,
-               shares: tuple | None = None) -> None:
+               shares: tuple | None = None, hidden=None) -> None:
         """Upload (T,3,3) corners and normals with (T,3) per-triangle colours and an optional
         (T,) receiver flag (default: every triangle receives GI). Positions are kept relative
         to ``origin`` (default: the centre of the vertices' bounds) for float32 precision.
         ``surface`` (textures.layout): the textures and corner colours the albedo and the
         GI reflectance take per point; its textures are fitted and kept per digest.
         ``specular`` (T, 3) glossy reflectance (Scene.specular_per_triangle; None: none).
-        ``shares`` (textures.view_shares): the Diffuse Color's view-angle share per triangle."""
+        ``shares`` (textures.view_shares): the Diffuse Color's view-angle share per triangle.
+        ``hidden`` (T,) ray-visibility bits (Scene.ray_hidden; None: seen by every ray)."""
         if key is not None and key == self._key:
             return
         self.surface = None if surface is None else textures.Surface(surface,
@@ -262,6 +272,8 @@ class Rasterizer:
         data[..., 6:9] = np.asarray(albedo, np.float32).reshape(-1, 1, 3)
         data[..., 9:12] = np.asarray(reflectance, np.float32).reshape(-1, 1, 3)
         data[..., 12] = 1.0 if receiver is None else np.asarray(receiver, np.float32).reshape(-1, 1)
+        if hidden is not None:
+            data[..., 12] += 2.0 * np.asarray(hidden, np.float32).reshape(-1, 1)
         self.release_geometry()
         if t:
             self._vbo = self.ctx.buffer(data.tobytes())
@@ -271,7 +283,7 @@ class Rasterizer:
                   "in_recv")],
             )
             self._rsm_vao = self.ctx.vertex_array(
-                self.rsm_program, [(self._vbo, "3f 3f 28x", "in_pos", "in_nrm")])
+                self.rsm_program, [(self._vbo, "3f 3f 24x 1f", "in_pos", "in_nrm", "in_recv")])
         self.reflectance = np.ascontiguousarray(data[:, 0, 9:12])
         if specular is not None:
             self.specular = np.asarray(specular, np.float32).reshape(t, 3)
@@ -293,7 +305,7 @@ class Rasterizer:
                 self._textured[name] = self.ctx.program(vertex_shader=vs, fragment_shader=fs)
         return {"gbuffer": (self._textured["gbuffer"], ("3f 3f 3f 3f 1f", "in_pos", "in_nrm",
                                                         "in_alb", "in_refl", "in_recv")),
-                "rsm": (self._textured["rsm"], ("3f 3f 28x", "in_pos", "in_nrm"))}
+                "rsm": (self._textured["rsm"], ("3f 3f 24x 1f", "in_pos", "in_nrm", "in_recv"))}
 
     def release_geometry(self) -> None:
         vaos = [self._textured.pop(k) for k in ("gbuffer_vao", "rsm_vao") if k in self._textured]
@@ -315,10 +327,10 @@ class Rasterizer:
             self._fbos[(width, height, targets)] = fbo
         return fbo
 
-    def _draw(self, program, vao, fbo, view, projection, ortho: bool) -> None:
+    def _draw(self, program, vao, fbo, view, projection, ortho: bool, hide: int = 0) -> None:
         """Clear ``fbo`` and draw the uploaded triangles into it with ``program`` (its
         view_proj, eye, view_dir and ortho uniforms set from the view; vertices are relative to
-        ``self.origin``)."""
+        ``self.origin``), leaving out the triangles whose ray-visibility bits meet ``hide``."""
         view = np.asarray(view, np.float64)
         inv_view = np.linalg.inv(view)
         eye = inv_view[:3, 3]
@@ -339,6 +351,7 @@ class Rasterizer:
         program["eye"].value = tuple((eye - self.origin).astype(np.float32))
         program["view_dir"].value = tuple(view_dir.astype(np.float32))
         program["ortho"].value = int(ortho)
+        program["hide"].value = 2 * int(hide)
         vao.render()
 
     @staticmethod
@@ -356,15 +369,18 @@ class Rasterizer:
         height: int,
         ortho: bool = False,
         targets: tuple[int, ...] = (0, 1, 2, 3),
+        hide: int = 0,
     ) -> list[np.ndarray]:
-        """Rasterise and read back the render targets ``targets`` (0 position, 1 normal,
-        2 albedo + receiver flag, 3 reflectance) as float32 (H, W, 4), rows top-first (views
-        of the readback), positions relative to ``self.origin``; coverage is position's w."""
+        """Rasterise and read back the render targets ``targets`` (0 position, 1 normal +
+        holdout flag, 2 albedo + receiver flag, 3 reflectance) as float32 (H, W, 4), rows
+        top-first (views of the readback), positions relative to ``self.origin``; coverage is
+        position's w. ``hide``: ray-visibility bits whose triangles are left out (shadow maps:
+        CASTS_NO_SHADOW)."""
         if self._vao is not None:
             # Positions were uploaded relative to origin; the shader's origin uniform is 0.
             self.program["origin"].value = (0.0, 0.0, 0.0)
         fbo = self._fbo(width, height)
-        self._draw(self.program, self._vao, fbo, view, projection, ortho)
+        self._draw(self.program, self._vao, fbo, view, projection, ortho, hide)
         return self._targets(fbo, targets, width, height)
 
     def read_rsm(self, view: np.ndarray, projection: np.ndarray, size: int,
@@ -426,7 +442,7 @@ class Rasterizer:
     ) -> Frame:
         """Rasterise from a world-to-view and projection matrix (OpenGL conventions).
         (Shadow maps read the position target alone: direct.render_shadow_map.)"""
-        out = self.read(view, projection, width, height, ortho, (0, 1, 2, 3))
+        out = self.read(view, projection, width, height, ortho, (0, 1, 2, 3), HIDDEN_FROM_CAMERA)
         covered = out[0][..., 3] > 0.5
         pos = out[0][..., :3].astype(np.float64) + self.origin
         pos[~covered] = np.nan
@@ -440,27 +456,33 @@ class Rasterizer:
         )
 
     def gbuffer(self, view: np.ndarray, projection: np.ndarray, width: int,
-                height: int, footprint: float = 0.0) -> tuple:
+                height: int, footprint: float = 0.0, holdout: bool = False) -> tuple:
         """The covered pixels of a camera view, as ``render`` gives them at frame.covered
         (the same numbers, pixels in row-major order, rows top-first): (covered (H, W) bool,
         world positions (M, 3) float64, normals (M, 3) float64, albedo (M, 3) float32,
-        receiver flags (M,) bool). Converts only what is covered, not whole frames.
-        ``footprint``: the side of each pixel's cell in pixels over which a textured albedo
-        is integrated (textures.footprint_factor; 0: read at the pixel's centre)."""
+        receiver flags (M,) bool), and with ``holdout`` the holdout flags (M,) bool after
+        them. Triangles hidden from the camera are left out. Converts only what is covered,
+        not whole frames. ``footprint``: the side of each pixel's cell in pixels over which
+        a textured albedo is integrated (textures.footprint_factor; 0: read at the pixel's
+        centre)."""
         if self.corners is None or self._vao is None:
-            pos4, nrm4, alb4 = self.read(view, projection, width, height, False, (0, 1, 2))
+            pos4, nrm4, alb4 = self.read(view, projection, width, height, False, (0, 1, 2),
+                                         HIDDEN_FROM_CAMERA)
         else:  # textured: the fifth target's barycentrics and triangle give the albedo
             program = self._textured["gbuffer"]
             program["origin"].value = (0.0, 0.0, 0.0)
             fbo = self._fbo(width, height, 5)
-            self._draw(program, self._textured["gbuffer_vao"], fbo, view, projection, False)
+            self._draw(program, self._textured["gbuffer_vao"], fbo, view, projection, False,
+                       HIDDEN_FROM_CAMERA)
             pos4, nrm4, alb4, bary4 = self._targets(fbo, (0, 1, 2, 4), width, height)
         covered = pos4[..., 3] > 0.5
         pos = pos4[covered][:, :3].astype(np.float64) + self.origin
         nrm = nrm4[covered][:, :3].astype(np.float64)
         alb = alb4[covered]
+        held = (nrm4[covered][:, 3] > 0.5,) if holdout else ()
         if self.corners is None or self._vao is None:
-            return covered, pos, nrm, np.ascontiguousarray(alb[:, :3]), alb[:, 3] > 0.5
+            return (covered, pos, nrm, np.ascontiguousarray(alb[:, :3]), alb[:, 3] > 0.5,
+                    *held)
         b = bary4[covered]
         tri = (b[:, 2].astype(np.int64) - 1) * TRIANGLE_SPLIT + b[:, 3].astype(np.int64)
         albedo = self.albedo[tri]
@@ -487,7 +509,7 @@ class Rasterizer:
             has = np.flatnonzero(r >= 0)
             cos = (nrm[has] * to_eye(view, projection, pos[has])).sum(-1)
             albedo[has] *= textures.share_at(table, r[has], cos)
-        return covered, pos, nrm, albedo, alb[:, 3] > 0.5
+        return (covered, pos, nrm, albedo, alb[:, 3] > 0.5, *held)
 
     def surroundings(self, point, near: float, far: float, size: int = 32):
         """What ``point`` sees in every direction: the six faces of a cube map of ``size``^2

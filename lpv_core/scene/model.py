@@ -300,6 +300,9 @@ class Scene:
     caster: np.ndarray | None = None
     occluder: np.ndarray | None = None
     receiver: np.ndarray | None = None
+    # Per-triangle ray-visibility bits (T,) uint8 of Cycles' object visibility (None: all
+    # seen): HIDDEN_FROM_CAMERA, CASTS_NO_SHADOW, HOLDOUT
+    ray_hidden: np.ndarray | None = None
     areas: list[Area] = field(default_factory=list)
     # Per-corner texture coordinates (T, 3, 2) float32 (materials with a texture read them)
     # and colours (T, 3, 3) float32 multiplying the albedo (Color Attribute); None: none.
@@ -310,6 +313,9 @@ class Scene:
     # material and what was done (an unsupported shader, a missing image...): the stats and
     # the UI show them.
     approximated: list[str] = field(default_factory=list)
+    # Film > Transparent: Combined's alpha is what covers each pixel and the World is not
+    # drawn behind it (Cycles' film_transparent)
+    film_transparent: bool = False
 
     def flag(self, name: str) -> np.ndarray:
         """Per-triangle bool array for 'caster', 'occluder' or 'receiver' (default all True)."""
@@ -364,6 +370,11 @@ def _material_table(materials: list[Material], attr: str) -> np.ndarray:
     return np.array([np.asarray(getattr(m, attr), np.float32) for m in materials], np.float32)
 
 
+HIDDEN_FROM_CAMERA = 1  # Object.visible_camera off: not in the camera's passes
+CASTS_NO_SHADOW = 2  # Object.visible_shadow off: left out of shadow and sky maps
+HOLDOUT = 4  # Object.is_holdout: its pixels are 0 with alpha 0 in every pass
+
+
 def make_scene(
     positions,
     normals=None,
@@ -381,6 +392,7 @@ def make_scene(
     uvs=None,
     corner_colors=None,
     world=None,
+    ray_hidden=None,
 ) -> Scene:
     """Build a validated Scene from loose arrays: bad triangles are dropped and counted.
 
@@ -435,6 +447,11 @@ def make_scene(
             if arr.shape != (t,):
                 raise ValueError(f"{fname} flags have shape {arr.shape}, expected ({t},)")
             flags[fname] = np.ascontiguousarray(arr[keep])
+    if ray_hidden is not None:
+        arr = np.asarray(ray_hidden, np.uint8).reshape(-1)
+        if arr.shape != (t,):
+            raise ValueError(f"ray_hidden has shape {arr.shape}, expected ({t},)")
+        flags["ray_hidden"] = np.ascontiguousarray(arr[keep]) if arr.any() else None
     corners = {}
     for cname, cvalue, width in (("uvs", uvs, 2), ("corner_colors", corner_colors, 3)):
         if cvalue is not None:
