@@ -257,7 +257,7 @@ def test_material_albedo_sources_and_per_triangle_assignment():
     ob = cube()
     ob.data.materials.append(principled)
     ob.data.materials.append(diffuse)
-    ob.data.materials.append(None)  # empty slot: default grey
+    ob.data.materials.append(None)  # empty slot: Cycles' default surface
     ob.data.polygons[1].material_index = 1
     ob.data.polygons[2].material_index = 2
     ob.data.polygons[3].material_index = 7  # out of range: Blender clamps to the last slot
@@ -275,7 +275,7 @@ def test_material_albedo_sources_and_per_triangle_assignment():
     albedo = s.albedo_per_triangle()
     on_cube = s.object_index == s.object_names.index("cube")
     per_face = albedo[on_cube].reshape(6, 2, 3)[:, 0]
-    grey = [0.8, 0.8, 0.8]
+    grey = [0.8 * PRINCIPLED] * 3  # Cycles' default surface: a default Principled of 0.8
     base = np.array([0.2, 0.4, 0.6]) * PRINCIPLED
     assert np.allclose(per_face, [base, [0.9, 0.1, 0.3], grey, grey, base, base], atol=1e-6)
     assert np.allclose(albedo[s.object_index == s.object_names.index("bare")], grey)
@@ -322,7 +322,7 @@ def test_mix_shader_and_fallbacks():
     emit, _ = material("emit", "ShaderNodeEmission")
     emit.diffuse_color = (0.1, 0.2, 0.3, 1)  # not the viewport colour: no diffuse, as Cycles
     assert np.allclose(extract.material_albedo(emit), 0.0, atol=1e-6)
-    assert np.allclose(extract.material_albedo(None), [0.8, 0.8, 0.8])
+    assert np.allclose(extract.material_albedo(None), [0.8 * PRINCIPLED] * 3, atol=1e-5)
 
 
 # ------------------------------------------------------------------------------- lights

@@ -255,6 +255,7 @@ SHADER_CASES = {
     "color attribute missing": attribute("nothing"),
     "mix color mix": rgb_mix("MIX", 0.25, (0.0, 0.2, 1.0, 1.0)),
     "mix color multiply": rgb_mix("MULTIPLY", 0.5, (0.5, 1.0, 0.0, 1.0)),
+    "no material": None,  # no material slot: Cycles' default surface
 }
 TEXTURE_CASES = {
     "texture sRGB": image_patch("sRGB"),
@@ -275,8 +276,10 @@ def reference(tmp_path_factory):
     names = list(SHADER_CASES) + list(TEXTURE_CASES)
     rows = -(-len(names) // COLS)
     for i, name in enumerate(names):
-        mat, nt, out = new_material(name)
-        (SHADER_CASES | TEXTURE_CASES)[name](nt, out)
+        build = (SHADER_CASES | TEXTURE_CASES)[name]
+        if build is not None:
+            mat, nt, out = new_material(name)
+            build(nt, out)
         x, y = i % COLS, i // COLS
         me = bpy.data.meshes.new(name)
         me.from_pydata([(x, -y, 0), (x + 1, -y, 0), (x + 1, -y - 1, 0), (x, -y - 1, 0)], [],
@@ -285,7 +288,8 @@ def reference(tmp_path_factory):
         uv.uv.foreach_set("vector", [0, 1, 0, 0, 1, 0, 1, 1])  # vertices 0, 3, 2, 1
         col = me.color_attributes.new("Col", "FLOAT_COLOR", "CORNER")
         col.data.foreach_set("color", CORNER_COLOR * 4)
-        me.materials.append(mat)
+        if build is not None:
+            me.materials.append(mat)
         scene.collection.objects.link(bpy.data.objects.new(name, me))
     cam = bpy.data.cameras.new("cam")
     cam.type, cam.ortho_scale = "ORTHO", COLS

@@ -82,6 +82,7 @@ def extract_scene(
         dropped[key] += 1
 
     areas: list = []
+    light_notes: list[str] = []  # what the lights' extraction approximated
     for inst in depsgraph.object_instances:
         ob = inst.object
         kind = ob.type
@@ -98,8 +99,14 @@ def extract_scene(
             continue
         matrix = np.array(inst.matrix_world, np.float64)  # copy now: inst is reused
         if kind == "LIGHT":
+            if not getattr(ob, "visible_diffuse", True):
+                continue  # Cycles: a light diffuse rays do not see lights no diffuse surface
             with timer.phase("lights"):
-                lights.append(light_from_object(ob, matrix))
+                light = light_from_object(ob, matrix, light_notes)
+                if light.power < 0:
+                    light_notes.append(f"light '{ob.name}': negative power ({light.power:g} W) "
+                                       "is not supported: left out")
+                lights.append(light)
         else:
             geo.add(ob, matrix, count)
 
@@ -124,7 +131,8 @@ def extract_scene(
             object_index=obj_index, object_names=geo.object_names, areas=areas,
             **geo.flags(obj_index, mat_index), **geo.corner_arrays(), world=world,
         )
-    result.approximated.extend(geo.approximated + world_notes)
+    result.approximated.extend(geo.approximated + world_notes + light_notes
+                               + camera_notes(scene))
     result.film_transparent = bool(scene.render.film_transparent)
     for key, n in geo.defaulted.items():
         if n:
@@ -568,9 +576,11 @@ def area_from_object(ob, inst) -> core.scene.Area | None:
 # ----------------------------------------------------------------------------------- lights
 
 
-def light_from_object(ob: bpy.types.Object, matrix: np.ndarray) -> core.scene.Light:
+def light_from_object(ob: bpy.types.Object, matrix: np.ndarray,
+                      notes: list | None = None) -> core.scene.Light:
     """A core Light in Cycles' units: power = energy x 2^exposure (x world area for area lights
-    without ``normalize``); colour x blackbody tint when ``use_temperature``."""
+    without ``normalize``); colour x blackbody tint when ``use_temperature``, x its node
+    tree's Emission colour and strength (light_nodes; what it cannot read goes to ``notes``)."""
     light = ob.data
     kind = light.type
     if kind not in core.scene.LIGHT_TYPES:
@@ -578,6 +588,7 @@ def light_from_object(ob: bpy.types.Object, matrix: np.ndarray) -> core.scene.Li
     color = np.array(light.color[:3], np.float64)
     if getattr(light, "use_temperature", False) and hasattr(light, "temperature_color"):
         color = color * np.array(light.temperature_color[:3], np.float64)
+    color = color * light_nodes(ob, notes if notes is not None else [])
     power = float(light.energy)
     if hasattr(light, "exposure"):
         power *= 2.0 ** float(light.exposure)
@@ -633,6 +644,45 @@ def render_resolution(scene: bpy.types.Scene) -> tuple[int, int]:
     return max(1, int(r.resolution_x * pct)), max(1, int(r.resolution_y * pct))
 
 
+def light_nodes(ob: bpy.types.Object, notes: list) -> np.ndarray:
+    """The (3,) factor a light's node tree (Cycles only, Use Nodes) puts on its emission: the
+    Emission shader's colour x strength at the Light Output; inputs that are linked (a
+    texture, IES) keep their defaults and are named in ``notes``."""
+    light = ob.data
+    tree = getattr(light, "node_tree", None)
+    if not getattr(light, "use_nodes", False) or tree is None:
+        return np.ones(3)
+    outs = [n for n in tree.nodes if n.bl_idname == "ShaderNodeOutputLight"]
+    out = next((n for n in outs if n.is_active_output), outs[0] if outs else None)
+    surface = None if out is None else out.inputs.get("Surface")
+    if surface is None or not surface.is_linked:
+        return np.zeros(3) if out is not None else np.ones(3)  # Cycles: nothing emitted
+    node = surface.links[0].from_node
+    while node.bl_idname == "NodeReroute" and node.inputs[0].is_linked:
+        node = node.inputs[0].links[0].from_node
+    if node.bl_idname != "ShaderNodeEmission":
+        notes.append(f"light '{ob.name}': its node tree's '{node.name}' ({node.bl_idname}) is "
+                     "not evaluated: the light as if without nodes")
+        return np.ones(3)
+    linked = [i.name for i in node.inputs if i.name in ("Color", "Strength") and i.is_linked]
+    if linked:
+        notes.append(f"light '{ob.name}': the Emission node's {' and '.join(linked)} is "
+                     "linked, not evaluated: its default value used")
+    return (np.array(node.inputs["Color"].default_value[:3], np.float64)
+            * float(node.inputs["Strength"].default_value))
+
+
+def camera_notes(scene: bpy.types.Scene) -> list[str]:
+    """What the camera does that LPV GI does not render: depth of field, motion blur."""
+    notes = []
+    cam = scene.camera
+    if cam is not None and getattr(cam.data, "dof", None) is not None and cam.data.dof.use_dof:
+        notes.append(f"camera '{cam.name}': depth of field is not rendered (all in focus)")
+    if getattr(scene.render, "use_motion_blur", False):
+        notes.append("motion blur is not rendered (Render Properties > Motion Blur)")
+    return notes
+
+
 def camera_from_scene(
     depsgraph: bpy.types.Depsgraph,
     scene: bpy.types.Scene,
@@ -653,6 +703,9 @@ def camera_from_scene(
             raise ValueError(f"resolution must be (width, height), got {resolution!r}") from None
     if width < 1 or height < 1:
         raise ValueError(f"resolution must be positive, got {width}x{height}")
+    if getattr(ob.data, "type", "PERSP") == "PANO":
+        raise ValueError(f"camera '{ob.name}': panoramic cameras are not supported by LPV GI; "
+                         "set its Type to Perspective or Orthographic")
     mw = ob.matrix_world
     if not np.isfinite(np.array(mw)).all():
         raise ValueError(f"camera '{ob.name}': non-finite world matrix")

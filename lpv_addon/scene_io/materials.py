@@ -787,8 +787,14 @@ def _hash(text: str) -> str:
 
 def material_info(mat) -> MaterialInfo:
     """The core Material of ``mat`` (None: the default grey) and what its texture reads."""
-    if mat is None:
-        return MaterialInfo(core.scene.Material("(none)", np.array(DEFAULT_ALBEDO, np.float32)))
+    if mat is None:  # Cycles' default surface: a Principled BSDF of base 0.8, its defaults
+        f0 = ((1.5 - 1.0) / (1.5 + 1.0)) ** 2  # IOR 1.5, Specular IOR Level 0.5
+        albedo = np.array(DEFAULT_ALBEDO) * layer_transmitted(0.5, f0)
+        m = core.scene.Material("(none)", albedo.astype(np.float32))
+        spec = np.clip(_view_table("transmitted", 0.5, f0), 0.0, 1.0)  # principled's layering
+        m.diffuse_share = np.ascontiguousarray(np.broadcast_to(
+            _over_head(spec), (len(core.scene.textures.SHARE_COS), 3)), np.float32)
+        return MaterialInfo(m)
     ev = _Evaluator(mat)
     diffuse, emission = _const(mat.diffuse_color[:3]), np.zeros(3)
     glossy = np.zeros(3)
