@@ -226,7 +226,7 @@ class Engine:
                                specular=scene.specular_per_triangle(),
                                shares=textures.view_shares(scene.materials,
                                                            scene.material_index),
-                               hidden=scene.ray_hidden)
+                               hidden=scene.ray_hidden, alpha=scene.alpha_per_triangle())
             if self.raster.surface is not None and stats is not None:
                 stats.info["textures"] = self.raster.surface.info
 
@@ -847,11 +847,11 @@ def _digest(*parts) -> str:
 
 
 def geometry_key(scene: Scene) -> str:
-    """Digest of the geometry, the caster / receiver / occluder flags (planner decisions) and
-    the ray visibility (what the shadow and sky maps hold)."""
-    hidden = () if scene.ray_hidden is None else (scene.ray_hidden,)
+    """Digest of the geometry, the caster / receiver / occluder flags (planner decisions), the
+    ray visibility and the coverage (what the shadow and sky maps hold)."""
+    extra = tuple(a for a in (scene.ray_hidden, scene.alpha_per_triangle()) if a is not None)
     return _digest(scene.positions, scene.flag("caster"), scene.flag("occluder"),
-                   scene.flag("receiver"), *hidden)
+                   scene.flag("receiver"), *extra)
 
 
 def reflectance_key(scene: Scene) -> str:

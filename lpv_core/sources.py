@@ -274,18 +274,19 @@ def emitter_mirror_vpls(clusters: list, material: int, positions: np.ndarray,
 
 
 def camera_light(engine, scene, projection, mask: np.ndarray, combined: np.ndarray,
-                 world: bool = True) -> None:
+                 world: bool = True, seed: tuple[int, int] = (0, 1)) -> None:
     """Add what the camera sees of the sources to ``combined`` (H, W, 4): each emitting
     surface's radiance where it is seen (its triangle per pixel, the RSM pass's index) and,
     with ``world`` (not Film > Transparent), the World along the view ray where no surface is
-    (bilinear in its map)."""
+    (bilinear in its map); ``seed``: the G-buffer's hashed alpha, so that the same fragments
+    are seen."""
     h, w = mask.shape
     mats = emitters.emissive_materials(scene)
     if mats and mask.any():
         raster = engine.raster
         fbo = raster._fbo(w, h, 2)
         raster._draw(raster.rsm_program, raster._rsm_vao, fbo, scene.camera.view, projection,
-                     False, HIDDEN_FROM_CAMERA)
+                     False, HIDDEN_FROM_CAMERA, seed)
         pos, nrm = raster._targets(fbo, (0, 1), w, h)
         tri = raster.triangles(pos[mask], nrm[mask])
         table = np.array([m.emission for m in scene.materials], np.float32)

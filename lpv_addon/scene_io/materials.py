@@ -818,6 +818,13 @@ def material_info(mat) -> MaterialInfo:
         if np.isfinite(share).all() and not np.allclose(share, 1.0):
             m.diffuse_share = np.ascontiguousarray(share, np.float32)
     m.specular = np.clip(np.nan_to_num(glossy), 0.0, None).astype(np.float32)
+    if output is not None:
+        alpha = coverage(ev, surface)
+        if alpha < 1.0:  # hashed alpha: the covered part's colours (Material.alpha)
+            m.alpha = alpha
+            scale = np.float32(1.0 / max(alpha, 1e-3))
+            m.albedo, m.emission, m.specular = (a * scale for a in (m.albedo, m.emission,
+                                                                    m.specular))
     info = MaterialInfo(m, color_attribute=diffuse.attr, notes=ev.notes,
                         defaulted_texels=ev.defaulted, holdout=holdout)
     if diffuse.pixels is not None:
@@ -834,6 +841,24 @@ def material_info(mat) -> MaterialInfo:
         m.bleed_intensity = float(props.bleed_intensity)
         m.emission_gi_intensity = float(getattr(props, "emission_gi_intensity", 1.0))
     return info
+
+
+def coverage(ev, surface) -> float:
+    """The share of a surface that is there, as Cycles' transparency sees it: a Transparent
+    BSDF's weight is not, a Principled's Alpha is its share (an image's mean alpha), Mix
+    Shader weighted; every other shader is opaque."""
+    def leaf(node, stack, depth):
+        kind = node.bl_idname
+        if kind == "ShaderNodeBsdfTransparent":
+            return np.zeros(1)
+        if kind == "ShaderNodeBsdfPrincipled" and "Alpha" in node.inputs:
+            return np.clip([ev.value(node.inputs["Alpha"], stack)], 0.0, 1.0)
+        return np.ones(1)
+
+    if surface is None:
+        return 1.0
+    return float(np.clip(ev.weighted(surface, leaf, np.ones(1), purpose="the coverage")[0],
+                         0.0, 1.0))
 
 
 def material_albedo(mat) -> np.ndarray:

@@ -11,11 +11,15 @@ from __future__ import annotations
 
 import numpy as np
 
+from .raster import HASHED_ALPHA
+
 VERTEX_SHADER = """
 #version 330
 uniform vec2 tiles;  // tiles per row, rows
 in vec3 in_pos;
 in float in_recv;  // raster.VERTEX_SHADER's code: bit 2, casts no shadow (left out)
+in float in_alpha;  // coverage (raster.HASHED_ALPHA)
+flat out float v_alpha;
 in vec4 c0;  // columns of the instance's view_proj (on origin-relative positions)
 in vec4 c1;
 in vec4 c2;
@@ -33,15 +37,18 @@ void main() {
     gl_ClipDistance[3] = c.w + c.y;
     v_depth = -(dot(row.xyz, in_pos) + row.w);
     c.xy = ((c.xy + c.w) * 0.5 + tile * c.w) / tiles * 2.0 - c.w;
+    v_alpha = in_alpha;
     gl_Position = (int(in_recv + 0.5) & 4) != 0 ? vec4(0.0, 0.0, 2.0, 1.0) : c;
 }
 """
 
 FRAGMENT_SHADER = """
 #version 330
+""" + HASHED_ALPHA + """
 in float v_depth;
 out float o_depth;
 void main() {
+    if (hashed_out()) discard;
     o_depth = v_depth;
 }
 """
@@ -92,10 +99,12 @@ class DepthAtlas:
                 inst[i, 16:20] = view[2]
                 inst[i, 20:] = (i // ny, i % ny)
             buf = ctx.buffer(inst.tobytes())
-            vao = ctx.vertex_array(self.program, [(vbo, "3f 36x 1f", "in_pos", "in_recv"),
+            vao = ctx.vertex_array(self.program, [(vbo, "3f 36x 1f 1f", "in_pos", "in_recv",
+                                                   "in_alpha"),
                                                   (buf, "4f 4f 4f 4f 4f 2f/i", "c0", "c1",
                                                    "c2", "c3", "row", "tile")])
             self.program["tiles"].value = (float(nx), float(ny))
+            self.program["seed"].value, self.program["samples"].value = 0, 1
             ctx.disable(moderngl.DEPTH_TEST)
             ctx.disable(moderngl.CULL_FACE)
             ctx.enable(moderngl.BLEND)

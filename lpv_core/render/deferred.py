@@ -73,7 +73,7 @@ def render(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats | None = N
             # not this render's decisions: only their times and drops are kept
             sub = stats if i == j == 0 else Stats()
             samples = _render_samples(engine, scene, lpv, sub, proj, 1.0 / s,
-                                      ((i * s + j) % sets, sets))
+                                      ((i * s + j) % sets, sets), (i * s + j, s * s))
             if sub is not stats:
                 for k, v in sub.ms.items():
                     stats.ms[k] = stats.ms.get(k, 0.0) + v
@@ -89,11 +89,14 @@ def render(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats | None = N
 
 def _render_samples(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats,
                     projection: np.ndarray, footprint: float = 1.0,
-                    sky_set: tuple[int, int] = (0, 1)) -> dict:
+                    sky_set: tuple[int, int] = (0, 1),
+                    seed: tuple[int, int] = (0, 1)) -> dict:
     """The passes of one sample per pixel through the camera ``projection`` (render's
     sub-pixel offsets move it); a textured albedo is integrated over each sample's cell,
     ``footprint`` pixels a side (Rasterizer.gbuffer); the World's direct light over its
-    directions' set ``sky_set`` (sources.maps)."""
+    directions' set ``sky_set`` (sources.maps); ``seed``: (sample, samples) of the hashed
+    alpha (each sample keeps other fragments of a partly covered surface, their mean its
+    coverage)."""
     w, h = scene.camera.resolution
     color = np.zeros((h, w, 3), np.float32)
     diff_dir = np.zeros((h, w, 3), np.float32)
@@ -102,7 +105,7 @@ def _render_samples(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats,
         lo, hi = engine.upload(scene, stats)  # the LPV box: shadow maps cover it, not outliers
         with Timer(stats, "gbuffer"):
             mask, pos, nrm, albedo, receiver, holdout = engine.raster.gbuffer(
-                scene.camera.view, projection, w, h, footprint, holdout=True)
+                scene.camera.view, projection, w, h, footprint, holdout=True, seed=seed)
             color[mask] = albedo
         with Timer(stats, "direct"):
             e_dir = None
@@ -156,7 +159,7 @@ def _render_samples(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats,
     if scene.film_transparent:  # alpha: what covers the pixel (the samples' mean)
         combined[..., 3] = seen
     sources.camera_light(engine, scene, projection, seen, combined,  # emitters, the World
-                         world=not scene.film_transparent)
+                         world=not scene.film_transparent, seed=seed)
     if scene.triangle_count and holdout.any():  # holdouts: 0 with alpha 0, as Cycles
         cut = np.zeros((h, w), bool)
         cut[mask] = holdout

@@ -18,6 +18,27 @@ from ..scene.model import HIDDEN_FROM_CAMERA
 
 _CTX = None
 
+# Hashed alpha [Wyman & McGuire 2017, with the PCG3D integer hash of Jarzynski & Olano 2020]:
+# a fragment of a triangle of coverage v_alpha < 1 is kept with that probability, from a hash
+# of its pixel and its triangle; the antialias samples of a pixel (``seed`` of ``samples``)
+# take turns over strata of that hash, so that their mean is the coverage within 1 / samples
+# (and a shadow map's filter sees it).
+HASHED_ALPHA = """
+uniform uint seed;
+uniform uint samples;
+flat in float v_alpha;
+bool hashed_out() {
+    if (v_alpha >= 1.0) return false;
+    uvec3 k = uvec3(uvec2(gl_FragCoord.xy), uint(gl_PrimitiveID));
+    k = k * 1664525u + 1013904223u;
+    k.x += k.y * k.z; k.y += k.z * k.x; k.z += k.x * k.y;
+    k ^= k >> 16u;
+    k.x += k.y * k.z; k.y += k.z * k.x; k.z += k.x * k.y;
+    float h = float(k.x >> 8u) * (1.0 / 16777216.0);
+    return fract(h + float(seed) / float(max(samples, 1u))) >= v_alpha;
+}
+"""
+
 # A triangle's in_recv: bit 0 receives GI, bits 1-3 its ray visibility (scene.model:
 # HIDDEN_FROM_CAMERA, CASTS_NO_SHADOW, HOLDOUT, shifted up by one). A pass leaves out the
 # triangles whose bits meet its ``hide`` mask: all three corners outside the clip volume.
@@ -30,12 +51,15 @@ in vec3 in_nrm;
 in vec3 in_alb;
 in vec3 in_refl;
 in float in_recv;
+in float in_alpha;
 out vec3 v_pos;
 out vec3 v_nrm;
 out vec3 v_alb;
 out vec3 v_refl;
 flat out int v_code;
+flat out float v_alpha;
 void main() {
+    v_alpha = in_alpha;
     v_pos = in_pos;
     v_nrm = in_nrm;
     v_alb = in_alb;
@@ -48,6 +72,7 @@ void main() {
 
 FRAGMENT_SHADER = """
 #version 330
+""" + HASHED_ALPHA + """
 uniform vec3 eye;        // viewer position (perspective)
 uniform vec3 view_dir;   // viewing direction (orthographic)
 uniform int ortho;
@@ -62,6 +87,7 @@ layout(location = 1) out vec4 o_nrm;
 layout(location = 2) out vec4 o_alb;
 layout(location = 3) out vec4 o_refl;
 void main() {
+    if (hashed_out()) discard;
     vec3 n = normalize(v_nrm);
     vec3 to_eye = ortho == 1 ? -view_dir : eye - v_pos;
     if (dot(n, to_eye) < 0.0) n = -n;
@@ -84,9 +110,12 @@ uniform int hide;
 in vec3 in_pos;
 in vec3 in_nrm;
 in float in_recv;
+in float in_alpha;
 out vec3 v_pos;
 out vec3 v_nrm;
+flat out float v_alpha;
 void main() {
+    v_alpha = in_alpha;
     v_pos = in_pos;
     v_nrm = in_nrm;
     gl_Position = (int(in_recv + 0.5) & hide) != 0 ? vec4(0.0, 0.0, 2.0, 1.0)
@@ -96,6 +125,7 @@ void main() {
 
 RSM_FRAGMENT_SHADER = """
 #version 330
+""" + HASHED_ALPHA + """
 uniform vec3 eye;
 uniform vec3 view_dir;
 uniform int ortho;
@@ -104,6 +134,7 @@ in vec3 v_nrm;
 layout(location = 0) out vec4 o_pos;  // w: 1 + triangle index / 2^24 (coverage: w > 0.5)
 layout(location = 1) out vec4 o_nrm;  // w: triangle index % 2^24
 void main() {
+    if (hashed_out()) discard;
     vec3 n = normalize(v_nrm);
     vec3 to_eye = ortho == 1 ? -view_dir : eye - v_pos;
     if (dot(n, to_eye) < 0.0) n = -n;
@@ -242,7 +273,7 @@ class Rasterizer:
 
     def upload(self, positions, normals, albedo, reflectance, key=None, receiver=None,
                origin=None, surface: textures.Layout | None = None, specular=None,
-               shares: tuple | None = None, hidden=None) -> None:
+               shares: tuple | None = None, hidden=None, alpha=None) -> None:
         """Upload (T,3,3) corners and normals with (T,3) per-triangle colours and an optional
         (T,) receiver flag (default: every triangle receives GI). Positions are kept relative
         to ``origin`` (default: the centre of the vertices' bounds) for float32 precision.
@@ -250,7 +281,8 @@ class Rasterizer:
         GI reflectance take per point; its textures are fitted and kept per digest.
         ``specular`` (T, 3) glossy reflectance (Scene.specular_per_triangle; None: none).
         ``shares`` (textures.view_shares): the Diffuse Color's view-angle share per triangle.
-        ``hidden`` (T,) ray-visibility bits (Scene.ray_hidden; None: seen by every ray)."""
+        ``hidden`` (T,) ray-visibility bits (Scene.ray_hidden; None: seen by every ray);
+        ``alpha`` (T,) coverage (Scene.alpha_per_triangle; None: opaque), hashed per pass."""
         if key is not None and key == self._key:
             return
         self.surface = None if surface is None else textures.Surface(surface,
@@ -266,7 +298,7 @@ class Rasterizer:
                 else np.zeros(3)
             )
         rel = (pos - self.origin).astype(np.float32)
-        data = np.empty((t, 3, 13), np.float32)
+        data = np.empty((t, 3, 14), np.float32)
         data[..., 0:3] = rel
         data[..., 3:6] = np.asarray(normals, np.float32).reshape(-1, 3, 3)
         data[..., 6:9] = np.asarray(albedo, np.float32).reshape(-1, 1, 3)
@@ -274,16 +306,18 @@ class Rasterizer:
         data[..., 12] = 1.0 if receiver is None else np.asarray(receiver, np.float32).reshape(-1, 1)
         if hidden is not None:
             data[..., 12] += 2.0 * np.asarray(hidden, np.float32).reshape(-1, 1)
+        data[..., 13] = 1.0 if alpha is None else np.asarray(alpha, np.float32).reshape(-1, 1)
         self.release_geometry()
         if t:
             self._vbo = self.ctx.buffer(data.tobytes())
             self._vao = self.ctx.vertex_array(
                 self.program,
-                [(self._vbo, "3f 3f 3f 3f 1f", "in_pos", "in_nrm", "in_alb", "in_refl",
-                  "in_recv")],
+                [(self._vbo, "3f 3f 3f 3f 1f 1f", "in_pos", "in_nrm", "in_alb", "in_refl",
+                  "in_recv", "in_alpha")],
             )
             self._rsm_vao = self.ctx.vertex_array(
-                self.rsm_program, [(self._vbo, "3f 3f 24x 1f", "in_pos", "in_nrm", "in_recv")])
+                self.rsm_program, [(self._vbo, "3f 3f 24x 1f 1f", "in_pos", "in_nrm", "in_recv",
+                                   "in_alpha")])
         self.reflectance = np.ascontiguousarray(data[:, 0, 9:12])
         if specular is not None:
             self.specular = np.asarray(specular, np.float32).reshape(t, 3)
@@ -303,9 +337,11 @@ class Rasterizer:
             for name, (vs, fs) in (("gbuffer", TEXTURED_SHADERS),
                                    ("rsm", TEXTURED_RSM_SHADERS)):
                 self._textured[name] = self.ctx.program(vertex_shader=vs, fragment_shader=fs)
-        return {"gbuffer": (self._textured["gbuffer"], ("3f 3f 3f 3f 1f", "in_pos", "in_nrm",
-                                                        "in_alb", "in_refl", "in_recv")),
-                "rsm": (self._textured["rsm"], ("3f 3f 24x 1f", "in_pos", "in_nrm", "in_recv"))}
+        return {"gbuffer": (self._textured["gbuffer"], ("3f 3f 3f 3f 1f 1f", "in_pos", "in_nrm",
+                                                        "in_alb", "in_refl", "in_recv",
+                                                        "in_alpha")),
+                "rsm": (self._textured["rsm"], ("3f 3f 24x 1f 1f", "in_pos", "in_nrm", "in_recv",
+                                                "in_alpha"))}
 
     def release_geometry(self) -> None:
         vaos = [self._textured.pop(k) for k in ("gbuffer_vao", "rsm_vao") if k in self._textured]
@@ -327,10 +363,13 @@ class Rasterizer:
             self._fbos[(width, height, targets)] = fbo
         return fbo
 
-    def _draw(self, program, vao, fbo, view, projection, ortho: bool, hide: int = 0) -> None:
+    def _draw(self, program, vao, fbo, view, projection, ortho: bool, hide: int = 0,
+              seed: tuple[int, int] = (0, 1)) -> None:
         """Clear ``fbo`` and draw the uploaded triangles into it with ``program`` (its
         view_proj, eye, view_dir and ortho uniforms set from the view; vertices are relative to
-        ``self.origin``), leaving out the triangles whose ray-visibility bits meet ``hide``."""
+        ``self.origin``), leaving out the triangles whose ray-visibility bits meet ``hide``;
+        ``seed``: (sample, samples) of the hashed alpha (the same seed keeps the same
+        fragments)."""
         view = np.asarray(view, np.float64)
         inv_view = np.linalg.inv(view)
         eye = inv_view[:3, 3]
@@ -352,6 +391,7 @@ class Rasterizer:
         program["view_dir"].value = tuple(view_dir.astype(np.float32))
         program["ortho"].value = int(ortho)
         program["hide"].value = 2 * int(hide)
+        program["seed"].value, program["samples"].value = (int(v) for v in seed)
         vao.render()
 
     @staticmethod
@@ -370,17 +410,18 @@ class Rasterizer:
         ortho: bool = False,
         targets: tuple[int, ...] = (0, 1, 2, 3),
         hide: int = 0,
+        seed: tuple[int, int] = (0, 1),
     ) -> list[np.ndarray]:
         """Rasterise and read back the render targets ``targets`` (0 position, 1 normal +
         holdout flag, 2 albedo + receiver flag, 3 reflectance) as float32 (H, W, 4), rows
         top-first (views of the readback), positions relative to ``self.origin``; coverage is
         position's w. ``hide``: ray-visibility bits whose triangles are left out (shadow maps:
-        CASTS_NO_SHADOW)."""
+        CASTS_NO_SHADOW); ``seed``: the hashed alpha's."""
         if self._vao is not None:
             # Positions were uploaded relative to origin; the shader's origin uniform is 0.
             self.program["origin"].value = (0.0, 0.0, 0.0)
         fbo = self._fbo(width, height)
-        self._draw(self.program, self._vao, fbo, view, projection, ortho, hide)
+        self._draw(self.program, self._vao, fbo, view, projection, ortho, hide, seed)
         return self._targets(fbo, targets, width, height)
 
     def read_rsm(self, view: np.ndarray, projection: np.ndarray, size: int,
@@ -456,7 +497,8 @@ class Rasterizer:
         )
 
     def gbuffer(self, view: np.ndarray, projection: np.ndarray, width: int,
-                height: int, footprint: float = 0.0, holdout: bool = False) -> tuple:
+                height: int, footprint: float = 0.0, holdout: bool = False,
+                seed: tuple[int, int] = (0, 1)) -> tuple:
         """The covered pixels of a camera view, as ``render`` gives them at frame.covered
         (the same numbers, pixels in row-major order, rows top-first): (covered (H, W) bool,
         world positions (M, 3) float64, normals (M, 3) float64, albedo (M, 3) float32,
@@ -464,16 +506,16 @@ class Rasterizer:
         them. Triangles hidden from the camera are left out. Converts only what is covered,
         not whole frames. ``footprint``: the side of each pixel's cell in pixels over which
         a textured albedo is integrated (textures.footprint_factor; 0: read at the pixel's
-        centre)."""
+        centre); ``seed``: the hashed alpha's (antialias sample, samples)."""
         if self.corners is None or self._vao is None:
             pos4, nrm4, alb4 = self.read(view, projection, width, height, False, (0, 1, 2),
-                                         HIDDEN_FROM_CAMERA)
+                                         HIDDEN_FROM_CAMERA, seed)
         else:  # textured: the fifth target's barycentrics and triangle give the albedo
             program = self._textured["gbuffer"]
             program["origin"].value = (0.0, 0.0, 0.0)
             fbo = self._fbo(width, height, 5)
             self._draw(program, self._textured["gbuffer_vao"], fbo, view, projection, False,
-                       HIDDEN_FROM_CAMERA)
+                       HIDDEN_FROM_CAMERA, seed)
             pos4, nrm4, alb4, bary4 = self._targets(fbo, (0, 1, 2, 4), width, height)
         covered = pos4[..., 3] > 0.5
         pos = pos4[covered][:, :3].astype(np.float64) + self.origin

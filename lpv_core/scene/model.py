@@ -42,6 +42,10 @@ class Material:
     # Glossy (mirror-like) reflectance: the share of incident flux a metal or Glossy BSDF
     # reflects around the mirror direction (rsm.view_vpls' mirror VPLs); zeros: none.
     specular: np.ndarray = field(default_factory=lambda: np.zeros(3, np.float32))
+    # Coverage (0-1): the share of the surface that is there (Principled Alpha, a Transparent
+    # BSDF's share); every pass keeps a fragment with this probability (hashed alpha), so
+    # the albedo, emission and glossy reflectance above are those of the covered part.
+    alpha: float = 1.0
 
     def gi_reflectance(self) -> np.ndarray:
         """Reflectance used for injected (bounced) flux: bleed colour x intensity, else albedo."""
@@ -351,6 +355,15 @@ class Scene:
             out = out * self.flag("caster")[:, None].astype(np.float32)
         return out
 
+    def alpha_per_triangle(self) -> np.ndarray | None:
+        """(T,) float32 coverage (Material.alpha, clipped to 0-1) per triangle; None when every
+        material is opaque."""
+        alphas = np.array([min(float(m.alpha), 1.0) for m in self.materials] or [1.0],
+                          np.float32)
+        if (alphas >= 1.0).all():
+            return None
+        return alphas[np.clip(self.material_index, 0, alphas.size - 1)]
+
     def specular_per_triangle(self) -> np.ndarray | None:
         """Glossy reflectance x GI bleed intensity per triangle (T, 3), 0 for non-casters;
         None when no caster's material has any (the RSM then makes no mirror VPLs)."""
@@ -483,7 +496,8 @@ def make_scene(
 _LIGHT_LOWS = {"color": 0.0, "gi_color": 0.0, "gi_intensity": None, "spot_size": 0.0,
                "spot_blend": 0.0, "radius": 0.0, "size": 0.0, "spread": 0.0, "angle": 0.0}
 _MATERIAL_LOWS = {"albedo": 0.0, "bleed_color": 0.0, "bleed_intensity": 0.0, "emission": 0.0,
-                  "emission_gi_intensity": None, "diffuse_share": 0.0, "specular": 0.0}
+                  "emission_gi_intensity": None, "diffuse_share": 0.0, "specular": 0.0,
+                  "alpha": 0.0}
 _AREA_LOWS = {"falloff": 0.0, "intensity": 0.0, "tint": 0.0}
 
 
