@@ -226,7 +226,8 @@ class Engine:
                                specular=scene.specular_per_triangle(),
                                shares=textures.view_shares(scene.materials,
                                                            scene.material_index),
-                               hidden=scene.ray_hidden, alpha=scene.alpha_per_triangle())
+                               hidden=scene.ray_hidden, alpha=scene.alpha_per_triangle(),
+                               translucency=scene.translucency_per_triangle())
             if self.raster.surface is not None and stats is not None:
                 stats.info["textures"] = self.raster.surface.info
 

@@ -44,6 +44,7 @@ def _settings(
     resolution: tuple[int, int] | None,
     seed: int,
     denoise: bool = False,
+    transmission_bounces: int = 0,
 ) -> list[tuple[Any, str, Any]]:
     """(owner, attribute, value) for every setting a reference render needs, in set order."""
     r = scene.render
@@ -69,7 +70,7 @@ def _settings(
         (c, "max_bounces", int(diffuse_bounces)),
         (c, "diffuse_bounces", int(diffuse_bounces)),
         (c, "glossy_bounces", 0),
-        (c, "transmission_bounces", 0),
+        (c, "transmission_bounces", int(transmission_bounces)),
         (c, "volume_bounces", 0),
         (c, "sample_clamp_direct", 0.0),
         (c, "sample_clamp_indirect", 0.0),
@@ -157,11 +158,14 @@ def render_cycles_passes(
     scene: bpy.types.Scene | None = None,
     seed: int = 0,
     denoise: bool = False,
+    transmission_bounces: int = 0,
 ) -> dict:
     """Render ``scene`` (default: the context scene) with Cycles on the CPU into a
     multi-layer EXR with Combined, Diffuse Direct, Diffuse Indirect and Diffuse Color
     (``denoise``: Combined through OpenImageDenoise, the time including it).
 
+    ``transmission_bounces`` (default 0) lets light through a Translucent BSDF's far side
+    bounce too (Cycles counts that scattering as a transmission bounce).
     ``diffuse_bounces`` sets both max and diffuse bounces (1: direct light plus one bounce,
     what LPV models); glossy, transmission and volume bounces are 0. Every render, Cycles and
     view-layer setting changed here is restored afterwards, even on error. The file appears
@@ -175,7 +179,7 @@ def render_cycles_passes(
     tmp = out_path.with_name(f".{out_path.stem}.{os.getpid()}.{uuid.uuid4().hex[:8]}.exr")
 
     wanted = _settings(scene, view_layer, str(tmp), samples, diffuse_bounces, resolution, seed,
-                       denoise)
+                       denoise, transmission_bounces)
     res = (tuple(int(v) for v in resolution) if resolution is not None
            else (scene.render.resolution_x, scene.render.resolution_y))
     seconds = render_with_settings(scene, wanted, tmp, out_path)

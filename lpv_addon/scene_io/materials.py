@@ -819,6 +819,7 @@ def material_info(mat) -> MaterialInfo:
             m.diffuse_share = np.ascontiguousarray(share, np.float32)
     m.specular = np.clip(np.nan_to_num(glossy), 0.0, None).astype(np.float32)
     if output is not None:
+        m.translucency = translucency(ev, surface, float(np.mean(diffuse.mean())))
         alpha = coverage(ev, surface)
         if alpha < 1.0:  # hashed alpha: the covered part's colours (Material.alpha)
             m.alpha = alpha
@@ -859,6 +860,20 @@ def coverage(ev, surface) -> float:
         return 1.0
     return float(np.clip(ev.weighted(surface, leaf, np.ones(1), purpose="the coverage")[0],
                          0.0, 1.0))
+
+
+def translucency(ev, surface, total: float) -> float:
+    """The share of a surface's Diffuse Color (``total``, its mean) that Translucent BSDFs
+    give, Mix and Add Shader weighted: the light of that share comes from the far side."""
+    def leaf(node, stack, depth):
+        if node.bl_idname == "ShaderNodeBsdfTranslucent":
+            return np.array([float(np.mean(ev.color(node.inputs["Color"], stack).mean()))])
+        return np.zeros(1)
+
+    if surface is None or not total > 0:
+        return 0.0
+    part = float(ev.weighted(surface, leaf, np.zeros(1), purpose="the translucency")[0])
+    return float(np.clip(part / total, 0.0, 1.0))
 
 
 def material_albedo(mat) -> np.ndarray:

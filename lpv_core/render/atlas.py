@@ -99,8 +99,8 @@ class DepthAtlas:
                 inst[i, 16:20] = view[2]
                 inst[i, 20:] = (i // ny, i % ny)
             buf = ctx.buffer(inst.tobytes())
-            vao = ctx.vertex_array(self.program, [(vbo, "3f 36x 1f 1f", "in_pos", "in_recv",
-                                                   "in_alpha"),
+            vao = ctx.vertex_array(self.program, [(vbo, "3f 36x 1f 1f 4x", "in_pos",
+                                                   "in_recv", "in_alpha"),
                                                   (buf, "4f 4f 4f 4f 4f 2f/i", "c0", "c1",
                                                    "c2", "c3", "row", "tile")])
             self.program["tiles"].value = (float(nx), float(ny))

@@ -87,6 +87,34 @@ def render(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats | None = N
     return {name: (arr / (s * s)).astype(np.float32) for name, arr in total.items()}
 
 
+def _direct(engine: Engine, scene: Scene, bounds, pos, nrm, stats: Stats, sky_set):
+    """Direct irradiance (M, 3) of every lamp, the World and the emitters at the receivers,
+    or None when there is none."""
+    e_dir = None
+    for light in scene.lights:
+        if light.power <= 0:
+            continue
+        shadow = engine.shadow_map(scene, light, bounds, scene.settings.shadow_resolution,
+                                   stats)
+        e = direct.irradiance(light, pos, nrm, shadow)
+        e_dir = e if e_dir is None else e_dir + e  # the first light: no zeros added
+    e_src = sources.direct(engine, scene, bounds, pos, nrm, stats, sky_set=sky_set)
+    if e_src is not None:
+        e_dir = e_src if e_dir is None else e_dir + e_src
+    return e_dir
+
+
+def _through(near, far, trans: np.ndarray, rows: np.ndarray):
+    """``near`` (M, 3) with its ``rows`` mixed with ``far`` (len(rows), 3) by the pixels'
+    translucency: (1 - t) near + t far."""
+    if far is None:
+        far = np.zeros((rows.size, 3))
+    out = np.zeros((trans.size, 3)) if near is None else np.array(near, np.float64)
+    t = trans[rows].astype(np.float64)[:, None]
+    out[rows] = (1.0 - t) * out[rows] + t * far
+    return out
+
+
 def _render_samples(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats,
                     projection: np.ndarray, footprint: float = 1.0,
                     sky_set: tuple[int, int] = (0, 1),
@@ -104,22 +132,17 @@ def _render_samples(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats,
     if scene.triangle_count:
         lo, hi = engine.upload(scene, stats)  # the LPV box: shadow maps cover it, not outliers
         with Timer(stats, "gbuffer"):
-            mask, pos, nrm, albedo, receiver, holdout = engine.raster.gbuffer(
+            mask, pos, nrm, albedo, receiver, holdout, trans = engine.raster.gbuffer(
                 scene.camera.view, projection, w, h, footprint, holdout=True, seed=seed)
             color[mask] = albedo
+        # a Translucent BSDF's share of a pixel is lit from the far side: its normal turned
+        through = np.flatnonzero(trans > 0)
         with Timer(stats, "direct"):
-            e_dir = None
-            for light in scene.lights:
-                if light.power <= 0:
-                    continue
-                shadow = engine.shadow_map(scene, light, (lo, hi),
-                                           scene.settings.shadow_resolution, stats)
-                e = direct.irradiance(light, pos, nrm, shadow)
-                e_dir = e if e_dir is None else e_dir + e  # the first light: no zeros added
-            e_src = sources.direct(engine, scene, (lo, hi), pos, nrm, stats,  # World, emitters
-                                   sky_set=sky_set)
-            if e_src is not None:
-                e_dir = e_src if e_dir is None else e_dir + e_src
+            e_dir = _direct(engine, scene, (lo, hi), pos, nrm, stats, sky_set)
+            if through.size:
+                back = _direct(engine, scene, (lo, hi), pos[through], -nrm[through], Stats(),
+                               sky_set)
+                e_dir = _through(e_dir, back, trans, through)
             if e_dir is not None:
                 diff_dir[mask] = e_dir / np.pi
         if lpv.values is not None:
@@ -135,10 +158,21 @@ def _render_samples(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats,
                 levels = [(lpv.grid, lpv.values, lpv.visibility)] + list(lpv.fine)
                 every = bool(recv.all())  # no masked copies of 1M points when all receive
                 at_r, nrm_r = (at, nrm) if every else (at[recv], nrm[recv])
+                turned = through[recv[through]] if through.size else through
                 for grid, values, vis in levels:  # inner cascades add theirs
                     e = backend.irradiance(
                         grid, values, lookup.sample_points(grid, at_r, nrm_r, lpv.gaps.get(grid)),
                         nrm_r, offset_cells=0.0, angular=scene.settings.angular, visibility=vis)
+                    if turned.size:  # the translucent share from the far side
+                        b = backend.irradiance(
+                            grid, values, lookup.sample_points(grid, at[turned], -nrm[turned],
+                                                               lpv.gaps.get(grid)),
+                            -nrm[turned], offset_cells=0.0, angular=scene.settings.angular,
+                            visibility=vis)
+                        full = np.zeros((pos.shape[0], 3))
+                        full[recv] = e
+                        full = _through(full, b, trans, turned)
+                        e = full if every else full[recv]
                     if every:
                         e_ind += e
                     else:

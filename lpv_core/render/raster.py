@@ -52,14 +52,17 @@ in vec3 in_alb;
 in vec3 in_refl;
 in float in_recv;
 in float in_alpha;
+in float in_trans;
 out vec3 v_pos;
 out vec3 v_nrm;
 out vec3 v_alb;
 out vec3 v_refl;
 flat out int v_code;
 flat out float v_alpha;
+flat out float v_trans;
 void main() {
     v_alpha = in_alpha;
+    v_trans = in_trans;
     v_pos = in_pos;
     v_nrm = in_nrm;
     v_alb = in_alb;
@@ -82,6 +85,7 @@ in vec3 v_nrm;
 in vec3 v_alb;
 in vec3 v_refl;
 flat in int v_code;
+flat in float v_trans;
 layout(location = 0) out vec4 o_pos;
 layout(location = 1) out vec4 o_nrm;
 layout(location = 2) out vec4 o_alb;
@@ -92,7 +96,8 @@ void main() {
     vec3 to_eye = ortho == 1 ? -view_dir : eye - v_pos;
     if (dot(n, to_eye) < 0.0) n = -n;
     o_pos = vec4(v_pos - origin, 1.0);
-    o_nrm = vec4(n, float((v_code >> 3) & 1));  // w: a holdout (Object.is_holdout)
+    // w: the translucency (0-1), or 2 for a holdout (Object.is_holdout)
+    o_nrm = vec4(n, ((v_code >> 3) & 1) != 0 ? 2.0 : v_trans);
     o_alb = vec4(v_alb, float(v_code & 1));  // alpha: receives GI (Object.lpv.gi_receiver)
     o_refl = vec4(v_refl, 1.0);
 }
@@ -273,7 +278,8 @@ class Rasterizer:
 
     def upload(self, positions, normals, albedo, reflectance, key=None, receiver=None,
                origin=None, surface: textures.Layout | None = None, specular=None,
-               shares: tuple | None = None, hidden=None, alpha=None) -> None:
+               shares: tuple | None = None, hidden=None, alpha=None,
+               translucency=None) -> None:
         """Upload (T,3,3) corners and normals with (T,3) per-triangle colours and an optional
         (T,) receiver flag (default: every triangle receives GI). Positions are kept relative
         to ``origin`` (default: the centre of the vertices' bounds) for float32 precision.
@@ -282,7 +288,8 @@ class Rasterizer:
         ``specular`` (T, 3) glossy reflectance (Scene.specular_per_triangle; None: none).
         ``shares`` (textures.view_shares): the Diffuse Color's view-angle share per triangle.
         ``hidden`` (T,) ray-visibility bits (Scene.ray_hidden; None: seen by every ray);
-        ``alpha`` (T,) coverage (Scene.alpha_per_triangle; None: opaque), hashed per pass."""
+        ``alpha`` (T,) coverage (Scene.alpha_per_triangle; None: opaque), hashed per pass;
+        ``translucency`` (T,) (Scene.translucency_per_triangle; None: none)."""
         if key is not None and key == self._key:
             return
         self.surface = None if surface is None else textures.Surface(surface,
@@ -298,7 +305,7 @@ class Rasterizer:
                 else np.zeros(3)
             )
         rel = (pos - self.origin).astype(np.float32)
-        data = np.empty((t, 3, 14), np.float32)
+        data = np.empty((t, 3, 15), np.float32)
         data[..., 0:3] = rel
         data[..., 3:6] = np.asarray(normals, np.float32).reshape(-1, 3, 3)
         data[..., 6:9] = np.asarray(albedo, np.float32).reshape(-1, 1, 3)
@@ -307,17 +314,19 @@ class Rasterizer:
         if hidden is not None:
             data[..., 12] += 2.0 * np.asarray(hidden, np.float32).reshape(-1, 1)
         data[..., 13] = 1.0 if alpha is None else np.asarray(alpha, np.float32).reshape(-1, 1)
+        data[..., 14] = 0.0 if translucency is None else np.asarray(
+            translucency, np.float32).reshape(-1, 1)
         self.release_geometry()
         if t:
             self._vbo = self.ctx.buffer(data.tobytes())
             self._vao = self.ctx.vertex_array(
                 self.program,
-                [(self._vbo, "3f 3f 3f 3f 1f 1f", "in_pos", "in_nrm", "in_alb", "in_refl",
-                  "in_recv", "in_alpha")],
+                [(self._vbo, "3f 3f 3f 3f 1f 1f 1f", "in_pos", "in_nrm", "in_alb", "in_refl",
+                  "in_recv", "in_alpha", "in_trans")],
             )
             self._rsm_vao = self.ctx.vertex_array(
-                self.rsm_program, [(self._vbo, "3f 3f 24x 1f 1f", "in_pos", "in_nrm", "in_recv",
-                                   "in_alpha")])
+                self.rsm_program, [(self._vbo, "3f 3f 24x 1f 1f 4x", "in_pos", "in_nrm",
+                                   "in_recv", "in_alpha")])
         self.reflectance = np.ascontiguousarray(data[:, 0, 9:12])
         if specular is not None:
             self.specular = np.asarray(specular, np.float32).reshape(t, 3)
@@ -337,11 +346,11 @@ class Rasterizer:
             for name, (vs, fs) in (("gbuffer", TEXTURED_SHADERS),
                                    ("rsm", TEXTURED_RSM_SHADERS)):
                 self._textured[name] = self.ctx.program(vertex_shader=vs, fragment_shader=fs)
-        return {"gbuffer": (self._textured["gbuffer"], ("3f 3f 3f 3f 1f 1f", "in_pos", "in_nrm",
-                                                        "in_alb", "in_refl", "in_recv",
-                                                        "in_alpha")),
-                "rsm": (self._textured["rsm"], ("3f 3f 24x 1f 1f", "in_pos", "in_nrm", "in_recv",
-                                                "in_alpha"))}
+        return {"gbuffer": (self._textured["gbuffer"], ("3f 3f 3f 3f 1f 1f 1f", "in_pos",
+                                                        "in_nrm", "in_alb", "in_refl",
+                                                        "in_recv", "in_alpha", "in_trans")),
+                "rsm": (self._textured["rsm"], ("3f 3f 24x 1f 1f 4x", "in_pos", "in_nrm",
+                                                "in_recv", "in_alpha"))}
 
     def release_geometry(self) -> None:
         vaos = [self._textured.pop(k) for k in ("gbuffer_vao", "rsm_vao") if k in self._textured]
@@ -502,8 +511,8 @@ class Rasterizer:
         """The covered pixels of a camera view, as ``render`` gives them at frame.covered
         (the same numbers, pixels in row-major order, rows top-first): (covered (H, W) bool,
         world positions (M, 3) float64, normals (M, 3) float64, albedo (M, 3) float32,
-        receiver flags (M,) bool), and with ``holdout`` the holdout flags (M,) bool after
-        them. Triangles hidden from the camera are left out. Converts only what is covered,
+        receiver flags (M,) bool), and with ``holdout`` the holdout flags (M,) bool and the
+        translucency (M,) float32 after them. Triangles hidden from the camera are left out. Converts only what is covered,
         not whole frames. ``footprint``: the side of each pixel's cell in pixels over which
         a textured albedo is integrated (textures.footprint_factor; 0: read at the pixel's
         centre); ``seed``: the hashed alpha's (antialias sample, samples)."""
@@ -521,7 +530,9 @@ class Rasterizer:
         pos = pos4[covered][:, :3].astype(np.float64) + self.origin
         nrm = nrm4[covered][:, :3].astype(np.float64)
         alb = alb4[covered]
-        held = (nrm4[covered][:, 3] > 0.5,) if holdout else ()
+        w4 = nrm4[covered][:, 3]
+        # holdout flags, then the translucency (0-1) of the covered pixels
+        held = (w4 > 1.5, np.where(w4 > 1.5, 0.0, w4).astype(np.float32)) if holdout else ()
         if self.corners is None or self._vao is None:
             return (covered, pos, nrm, np.ascontiguousarray(alb[:, :3]), alb[:, 3] > 0.5,
                     *held)

@@ -46,6 +46,9 @@ class Material:
     # BSDF's share); every pass keeps a fragment with this probability (hashed alpha), so
     # the albedo, emission and glossy reflectance above are those of the covered part.
     alpha: float = 1.0
+    # Share of the Diffuse Color that is a Translucent BSDF's: its light comes through the
+    # surface from the far side (the side away from the viewer), not from the near side
+    translucency: float = 0.0
 
     def gi_reflectance(self) -> np.ndarray:
         """Reflectance used for injected (bounced) flux: bleed colour x intensity, else albedo."""
@@ -364,6 +367,15 @@ class Scene:
             return None
         return alphas[np.clip(self.material_index, 0, alphas.size - 1)]
 
+    def translucency_per_triangle(self) -> np.ndarray | None:
+        """(T,) float32 Material.translucency (clipped to 0-1) per triangle; None when no
+        material has any."""
+        shares = np.array([min(float(m.translucency), 1.0) for m in self.materials] or [0.0],
+                          np.float32)
+        if not (shares > 0).any():
+            return None
+        return shares[np.clip(self.material_index, 0, shares.size - 1)]
+
     def specular_per_triangle(self) -> np.ndarray | None:
         """Glossy reflectance x GI bleed intensity per triangle (T, 3), 0 for non-casters;
         None when no caster's material has any (the RSM then makes no mirror VPLs)."""
@@ -497,7 +509,7 @@ _LIGHT_LOWS = {"color": 0.0, "gi_color": 0.0, "gi_intensity": None, "spot_size":
                "spot_blend": 0.0, "radius": 0.0, "size": 0.0, "spread": 0.0, "angle": 0.0}
 _MATERIAL_LOWS = {"albedo": 0.0, "bleed_color": 0.0, "bleed_intensity": 0.0, "emission": 0.0,
                   "emission_gi_intensity": None, "diffuse_share": 0.0, "specular": 0.0,
-                  "alpha": 0.0}
+                  "alpha": 0.0, "translucency": 0.0}
 _AREA_LOWS = {"falloff": 0.0, "intensity": 0.0, "tint": 0.0}
 
 
