@@ -227,7 +227,8 @@ class Engine:
                                shares=textures.view_shares(scene.materials,
                                                            scene.material_index),
                                hidden=scene.ray_hidden, alpha=scene.alpha_per_triangle(),
-                               translucency=scene.translucency_per_triangle())
+                               translucency=scene.translucency_per_triangle(),
+                               alpha_maps=_alpha_maps(scene))
             if self.raster.surface is not None and stats is not None:
                 stats.info["textures"] = self.raster.surface.info
 
@@ -850,7 +851,11 @@ def _digest(*parts) -> str:
 def geometry_key(scene: Scene) -> str:
     """Digest of the geometry, the caster / receiver / occluder flags (planner decisions), the
     ray visibility and the coverage (what the shadow and sky maps hold)."""
-    extra = tuple(a for a in (scene.ray_hidden, scene.alpha_per_triangle()) if a is not None)
+    maps = scene.alpha_maps()
+    extra = tuple(a for a in (scene.ray_hidden, scene.alpha_per_triangle(),
+                              None if maps is None else maps[0]) if a is not None)
+    extra += tuple(m.alpha_texture.digest for m in scene.materials
+                   if m.alpha_texture is not None)
     return _digest(scene.positions, scene.flag("caster"), scene.flag("occluder"),
                    scene.flag("receiver"), *extra)
 
@@ -926,6 +931,12 @@ def _lights_digest(lights) -> list:
     plans compare it for each light's map of every render sample: ~2 us a light)."""
     return [(_LIGHT_SCALARS(li), np.asarray(li.matrix).tobytes(), np.asarray(li.color).tobytes(),
              np.asarray(getattr(li, "gi_color", 0.0)).tobytes()) for li in lights]
+
+
+def _alpha_maps(scene: Scene):
+    """(layer, UVs, maps) of the scene's per-point coverage for Rasterizer.upload, or None."""
+    maps = scene.alpha_maps()
+    return None if maps is None else (maps[0], scene.uvs, maps[1])
 
 
 def _inject(backend, grid: Grid, positions, normals, flux, visibility, sel=slice(None)):

@@ -63,12 +63,14 @@ TEXTURE_FOLDER = "textures"  # beside the scene file: one <digest>.npy per textu
 def _material_json(material: Material, folder: str) -> dict:
     """A material's fields as JSON, its texture by digest: the pixels go to ``folder`` as
     <digest>.npy, written only when that file is not there yet (each texture sent once)."""
-    tex = material.texture
-    out = _as_json(dataclasses.replace(material, texture=None))
-    if tex is not None:
+    out = _as_json(dataclasses.replace(material, texture=None, alpha_texture=None))
+    for key in ("texture", "alpha_texture"):
+        tex = getattr(material, key)
+        if tex is None:
+            continue
         digest = textures.digest_of(tex)
-        out["texture"] = {"name": tex.name, "interpolation": tex.interpolation,
-                          "extension": tex.extension, "digest": digest}
+        out[key] = {"name": tex.name, "interpolation": tex.interpolation,
+                    "extension": tex.extension, "digest": digest}
         file = os.path.join(folder, digest + ".npy")
         if not os.path.exists(file):
             os.makedirs(folder, exist_ok=True)
@@ -144,7 +146,8 @@ def save_scene(path: str, scene: Scene) -> None:
         "world": _world_json(scene.world, folder),
     }
     arrays["meta"] = np.array(json.dumps(meta))
-    used = {m["texture"]["digest"] for m in meta["materials"] if m.get("texture")}
+    used = {m[k]["digest"] for m in meta["materials"] for k in ("texture", "alpha_texture")
+            if m.get(k)}
     used |= {meta["world"]["digest"]} if meta["world"] else set()
     if used:
         _prune_textures(folder, used)
@@ -171,17 +174,19 @@ def load_scene(path: str, held: dict | None = None) -> Scene:
     known = dict(held or {})
     materials = []
     for m in meta["materials"]:
-        tex = m.pop("texture", None)
+        texs = {key: m.pop(key, None) for key in ("texture", "alpha_texture")}
         material = _dataclass(Material, m, {"albedo": np.float32, "bleed_color": np.float32,
                                             "emission": np.float32, "specular": np.float32,
                                             "diffuse_share": np.float32})
-        if tex is not None:
+        for key, tex in texs.items():
+            if tex is None:
+                continue
             pixels = known.get(tex["digest"])
             if pixels is None:  # mapped, not read: the engine's fitted copy is what it holds
                 pixels = np.load(os.path.join(folder, tex["digest"] + ".npy"), mmap_mode="r")
                 known[tex["digest"]] = pixels
-            material.texture = textures.Texture(tex["name"], pixels, tex["interpolation"],
-                                                tex["extension"], tex["digest"])
+            setattr(material, key, textures.Texture(tex["name"], pixels, tex["interpolation"],
+                                                    tex["extension"], tex["digest"]))
         materials.append(material)
     world = meta.get("world")
     if world is not None:
@@ -192,8 +197,8 @@ def load_scene(path: str, held: dict | None = None) -> Scene:
                       world["digest"])
     if held is not None:
         held.clear()
-        held.update({m.texture.digest: m.texture.pixels for m in materials
-                     if m.texture is not None})
+        held.update({t.digest: t.pixels for m in materials
+                     for t in (m.texture, m.alpha_texture) if t is not None})
         if world is not None:
             held[world.digest] = world.radiance
     lights = []

@@ -82,3 +82,37 @@ def test_a_partly_transparent_card_is_seen_through_and_shadows_by_its_coverage(
     for name in ("Diffuse Color", "Diffuse Direct", "Combined"):
         ratio = ours[name].mean() / ref[name].mean()
         assert abs(ratio - 1.0) < 0.05, (name, ratio)
+
+
+def test_an_image_alpha_cuts_the_card_per_texel(tmp_path):
+    """A leaf card's Alpha from its image (a 4 x 4 checker of alpha 0 and 1 through the
+    card's UV map): the floor shows through and is lit through the holes texel by texel
+    (measured 0.077 and 0.35; its mean alpha, 0.5, as a uniform coverage: Diffuse Color
+    relative RMSE 0.12, Diffuse Direct 0.50)."""
+    import lpv_core as core
+    from lpv_addon.render import cycles
+    from lpv_addon.scene_io.extract import extract_scene
+    from lpv_core.render.error import relative_rmse
+    from tools import report
+
+    sc = _card_over_floor(False)
+    tree = bpy.data.materials["Card"].node_tree
+    image = bpy.data.images.new("checker", 4, 4, alpha=True)
+    px = np.ones((4, 4, 4), np.float32)
+    px[..., 3] = (np.add.outer(np.arange(4), np.arange(4)) % 2).astype(np.float32)
+    image.pixels.foreach_set(px.ravel())
+    image.pack()
+    node = tree.nodes.new("ShaderNodeTexImage")
+    node.image, node.interpolation = image, "Closest"
+    tree.links.new(node.outputs["Alpha"], tree.nodes["Principled BSDF"].inputs["Alpha"])
+    exr = tmp_path / "cycles.exr"
+    cycles.render_cycles_passes(str(exr), samples=32, resolution=RES)
+    ref = {k: np.asarray(v, np.float64)[..., :3] for k, v in report._read_exr(str(exr)).items()}
+    scene = extract_scene(bpy.context.evaluated_depsgraph_get(), sc, RES)
+    card = next(m for m in scene.materials if m.name == "Card")
+    assert card.alpha_texture is not None and card.alpha == 1.0
+    eng = report._make_engine(core.render.raster.Rasterizer())
+    ours = {k: np.asarray(v, np.float64)[..., :3]
+            for k, v in report.run_lpv(scene, scene.settings, eng, 1)["passes"].items()}
+    assert relative_rmse(ours["Diffuse Color"], ref["Diffuse Color"]) < 0.1
+    assert relative_rmse(ours["Diffuse Direct"], ref["Diffuse Direct"]) < 0.42

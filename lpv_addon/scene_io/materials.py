@@ -818,6 +818,7 @@ def material_info(mat) -> MaterialInfo:
         if np.isfinite(share).all() and not np.allclose(share, 1.0):
             m.diffuse_share = np.ascontiguousarray(share, np.float32)
     m.specular = np.clip(np.nan_to_num(glossy), 0.0, None).astype(np.float32)
+    alpha_uv = None
     if output is not None:
         m.translucency = translucency(ev, surface, float(np.mean(diffuse.mean())))
         alpha = coverage(ev, surface)
@@ -826,8 +827,11 @@ def material_info(mat) -> MaterialInfo:
             scale = np.float32(1.0 / max(alpha, 1e-3))
             m.albedo, m.emission, m.specular = (a * scale for a in (m.albedo, m.emission,
                                                                     m.specular))
+            alpha_uv = alpha_map(ev, surface, m, diffuse.uv or ev.uv)
     info = MaterialInfo(m, color_attribute=diffuse.attr, notes=ev.notes,
                         defaulted_texels=ev.defaulted, holdout=holdout)
+    if alpha_uv is not None and diffuse.pixels is None:  # the alpha image's UV map alone
+        info.uv_map, info.uv_transform = alpha_uv
     if diffuse.pixels is not None:
         node = diffuse.node
         m.texture = core.scene.Texture(
@@ -860,6 +864,57 @@ def coverage(ev, surface) -> float:
         return 1.0
     return float(np.clip(ev.weighted(surface, leaf, np.ones(1), purpose="the coverage")[0],
                          0.0, 1.0))
+
+
+def alpha_map(ev, surface, m, uv) -> tuple | None:
+    """A Principled Alpha read from an image's Alpha through a UV map becomes the material's
+    alpha_texture (the coverage per point; m.alpha 1), when that UV map is the one the
+    material's colour image reads (or it has none); returns the UV source, else None (the
+    mean alpha stays, named)."""
+    node, _, stack = ev.resolve(surface)
+    if node is None or node.bl_idname != "ShaderNodeBsdfPrincipled":
+        return None
+    image_node, out, stack = ev.resolve(node.inputs["Alpha"], stack)
+    if (image_node is None or image_node.bl_idname != "ShaderNodeTexImage"
+            or out.name != "Alpha" or image_node.image is None):
+        return None
+    source = ev.uv_source(image_node, stack)
+    if source is None or (uv is not None and not _same_uv(source, uv)):
+        return None
+    digest, pixels = image_alpha(image_node.image)
+    if pixels is None:
+        return None
+    m.alpha_texture = core.scene.textures.Texture(
+        image_node.image.name, pixels, image_node.interpolation, image_node.extension,
+        digest)
+    m.alpha = 1.0
+    ev.notes[:] = [n for n in ev.notes if "driven by the alpha of image" not in n]
+    return source
+
+
+_ALPHAS: dict[str, np.ndarray] = {}  # image digest -> its alpha (H, W, 1)
+
+
+def image_alpha(image) -> tuple[str, np.ndarray | None]:
+    """(digest, (H, W, 1) float32 alpha in 0-1, rows bottom-first, at most TEXTURE_BUDGET
+    pixels; None for an empty image) of ``image``, kept per digest (bounded)."""
+    digest = image_digest(image) + ":alpha"
+    if digest in _ALPHAS and not image.is_dirty:
+        return digest, _ALPHAS[digest]
+    w, h = image.size[:]
+    channels = image.channels
+    if w <= 0 or h <= 0 or channels != 4:
+        return digest, None
+    px = np.empty(w * h * channels, np.float32)
+    image.pixels.foreach_get(px)
+    alpha = np.nan_to_num(px.reshape(h, w, 4)[..., 3:], nan=1.0)
+    alpha = np.ascontiguousarray(np.clip(resample_to_budget(alpha, TEXTURE_BUDGET), 0.0, 1.0),
+                                 np.float32)
+    alpha.flags.writeable = False
+    while len(_ALPHAS) >= 32:
+        _ALPHAS.pop(next(iter(_ALPHAS)))
+    _ALPHAS[digest] = alpha
+    return digest, alpha
 
 
 def translucency(ev, surface, total: float) -> float:

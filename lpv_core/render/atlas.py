@@ -19,7 +19,11 @@ uniform vec2 tiles;  // tiles per row, rows
 in vec3 in_pos;
 in float in_recv;  // raster.VERTEX_SHADER's code: bit 2, casts no shadow (left out)
 in float in_alpha;  // coverage (raster.HASHED_ALPHA)
+in vec2 in_uv;
+in float in_layer;
 flat out float v_alpha;
+flat out float v_layer;
+out vec2 v_uv;
 in vec4 c0;  // columns of the instance's view_proj (on origin-relative positions)
 in vec4 c1;
 in vec4 c2;
@@ -38,6 +42,8 @@ void main() {
     v_depth = -(dot(row.xyz, in_pos) + row.w);
     c.xy = ((c.xy + c.w) * 0.5 + tile * c.w) / tiles * 2.0 - c.w;
     v_alpha = in_alpha;
+    v_layer = in_layer;
+    v_uv = in_uv;
     gl_Position = (int(in_recv + 0.5) & 4) != 0 ? vec4(0.0, 0.0, 2.0, 1.0) : c;
 }
 """
@@ -99,12 +105,18 @@ class DepthAtlas:
                 inst[i, 16:20] = view[2]
                 inst[i, 20:] = (i // ny, i % ny)
             buf = ctx.buffer(inst.tobytes())
-            vao = ctx.vertex_array(self.program, [(vbo, "3f 36x 1f 1f 4x", "in_pos",
-                                                   "in_recv", "in_alpha"),
+            vao = ctx.vertex_array(self.program, [(vbo, "3f 36x 1f 1f 4x 2f 1f", "in_pos",
+                                                   "in_recv", "in_alpha", "in_uv",
+                                                   "in_layer"),
                                                   (buf, "4f 4f 4f 4f 4f 2f/i", "c0", "c1",
                                                    "c2", "c3", "row", "tile")])
             self.program["tiles"].value = (float(nx), float(ny))
             self.program["seed"].value, self.program["samples"].value = 0, 1
+            if raster._alpha_maps is not None:
+                from .raster import ALPHA_MAP_UNIT
+
+                raster._alpha_maps.use(location=ALPHA_MAP_UNIT)
+                self.program["alpha_maps"].value = ALPHA_MAP_UNIT
             ctx.disable(moderngl.DEPTH_TEST)
             ctx.disable(moderngl.CULL_FACE)
             ctx.enable(moderngl.BLEND)

@@ -26,16 +26,21 @@ _CTX = None
 HASHED_ALPHA = """
 uniform uint seed;
 uniform uint samples;
+uniform sampler2DArray alpha_maps;
 flat in float v_alpha;
+flat in float v_layer;  // its alpha map's layer (-1: none)
+in vec2 v_uv;
 bool hashed_out() {
-    if (v_alpha >= 1.0) return false;
+    float a = v_alpha;
+    if (v_layer >= 0.0) a *= texture(alpha_maps, vec3(fract(v_uv), v_layer)).r;
+    if (a >= 1.0) return false;
     uvec3 k = uvec3(uvec2(gl_FragCoord.xy), uint(gl_PrimitiveID));
     k = k * 1664525u + 1013904223u;
     k.x += k.y * k.z; k.y += k.z * k.x; k.z += k.x * k.y;
     k ^= k >> 16u;
     k.x += k.y * k.z; k.y += k.z * k.x; k.z += k.x * k.y;
     float h = float(k.x >> 8u) * (1.0 / 16777216.0);
-    return fract(h + float(seed) / float(max(samples, 1u))) >= v_alpha;
+    return fract(h + float(seed) / float(max(samples, 1u))) >= a;
 }
 """
 
@@ -53,6 +58,8 @@ in vec3 in_refl;
 in float in_recv;
 in float in_alpha;
 in float in_trans;
+in vec2 in_uv;
+in float in_layer;
 out vec3 v_pos;
 out vec3 v_nrm;
 out vec3 v_alb;
@@ -60,8 +67,12 @@ out vec3 v_refl;
 flat out int v_code;
 flat out float v_alpha;
 flat out float v_trans;
+flat out float v_layer;
+out vec2 v_uv;
 void main() {
     v_alpha = in_alpha;
+    v_layer = in_layer;
+    v_uv = in_uv;
     v_trans = in_trans;
     v_pos = in_pos;
     v_nrm = in_nrm;
@@ -116,11 +127,17 @@ in vec3 in_pos;
 in vec3 in_nrm;
 in float in_recv;
 in float in_alpha;
+in vec2 in_uv;
+in float in_layer;
 out vec3 v_pos;
 out vec3 v_nrm;
 flat out float v_alpha;
+flat out float v_layer;
+out vec2 v_uv;
 void main() {
     v_alpha = in_alpha;
+    v_layer = in_layer;
+    v_uv = in_uv;
     v_pos = in_pos;
     v_nrm = in_nrm;
     gl_Position = (int(in_recv + 0.5) & hide) != 0 ? vec4(0.0, 0.0, 2.0, 1.0)
@@ -147,6 +164,24 @@ void main() {
     o_nrm = vec4(n, float(gl_PrimitiveID & 0xFFFFFF));
 }
 """
+ALPHA_MAP_SIDE = 256  # texels a side of each alpha map in the coverage's texture array
+ALPHA_MAP_UNIT = 1  # its texture unit
+
+
+def _resampled(a: np.ndarray, side: int) -> np.ndarray:
+    """(side, side) bilinear resampling of an (H, W) map, texel centres to texel centres,
+    rows kept bottom-first (GL's first row is the bottom: UV (0, 0) at the map's corner)."""
+    h, w = a.shape
+    ys = np.clip((np.arange(side) + 0.5) * h / side - 0.5, 0, h - 1)
+    xs = np.clip((np.arange(side) + 0.5) * w / side - 0.5, 0, w - 1)
+    y0, x0 = np.floor(ys).astype(int), np.floor(xs).astype(int)
+    y1, x1 = np.minimum(y0 + 1, h - 1), np.minimum(x0 + 1, w - 1)
+    fy, fx = (ys - y0)[:, None], (xs - x0)[None, :]
+    top = a[y0][:, x0] * (1 - fx) + a[y0][:, x1] * fx
+    bot = a[y1][:, x0] * (1 - fx) + a[y1][:, x1] * fx
+    return (top * (1 - fy) + bot * fy).astype(np.float32)
+
+
 TRIANGLE_SPLIT = 1 << 24  # the RSM pass's triangle index = (pos.w - 1) x this + nrm.w
 
 
@@ -258,6 +293,7 @@ class Rasterizer:
         )
         self._vao = None
         self._rsm_vao = None
+        self._alpha_maps = None  # the coverage's texture array (_upload_alpha_maps)
         self._vbo = None
         self._key = None
         self._fbos: dict = {}
@@ -279,7 +315,7 @@ class Rasterizer:
     def upload(self, positions, normals, albedo, reflectance, key=None, receiver=None,
                origin=None, surface: textures.Layout | None = None, specular=None,
                shares: tuple | None = None, hidden=None, alpha=None,
-               translucency=None) -> None:
+               translucency=None, alpha_maps=None) -> None:
         """Upload (T,3,3) corners and normals with (T,3) per-triangle colours and an optional
         (T,) receiver flag (default: every triangle receives GI). Positions are kept relative
         to ``origin`` (default: the centre of the vertices' bounds) for float32 precision.
@@ -289,7 +325,9 @@ class Rasterizer:
         ``shares`` (textures.view_shares): the Diffuse Color's view-angle share per triangle.
         ``hidden`` (T,) ray-visibility bits (Scene.ray_hidden; None: seen by every ray);
         ``alpha`` (T,) coverage (Scene.alpha_per_triangle; None: opaque), hashed per pass;
-        ``translucency`` (T,) (Scene.translucency_per_triangle; None: none)."""
+        ``translucency`` (T,) (Scene.translucency_per_triangle; None: none);
+        ``alpha_maps`` ((T,) layer, (T, 3, 2) UVs, maps) the coverage per point
+        (Scene.alpha_maps and Scene.uvs; None: none)."""
         if key is not None and key == self._key:
             return
         self.surface = None if surface is None else textures.Surface(surface,
@@ -305,7 +343,7 @@ class Rasterizer:
                 else np.zeros(3)
             )
         rel = (pos - self.origin).astype(np.float32)
-        data = np.empty((t, 3, 15), np.float32)
+        data = np.empty((t, 3, 18), np.float32)
         data[..., 0:3] = rel
         data[..., 3:6] = np.asarray(normals, np.float32).reshape(-1, 3, 3)
         data[..., 6:9] = np.asarray(albedo, np.float32).reshape(-1, 1, 3)
@@ -316,17 +354,20 @@ class Rasterizer:
         data[..., 13] = 1.0 if alpha is None else np.asarray(alpha, np.float32).reshape(-1, 1)
         data[..., 14] = 0.0 if translucency is None else np.asarray(
             translucency, np.float32).reshape(-1, 1)
+        data[..., 15:17] = 0.0
+        data[..., 17] = -1.0
+        self._upload_alpha_maps(alpha_maps, data)
         self.release_geometry()
         if t:
             self._vbo = self.ctx.buffer(data.tobytes())
             self._vao = self.ctx.vertex_array(
                 self.program,
-                [(self._vbo, "3f 3f 3f 3f 1f 1f 1f", "in_pos", "in_nrm", "in_alb", "in_refl",
-                  "in_recv", "in_alpha", "in_trans")],
+                [(self._vbo, "3f 3f 3f 3f 1f 1f 1f 2f 1f", "in_pos", "in_nrm", "in_alb",
+                  "in_refl", "in_recv", "in_alpha", "in_trans", "in_uv", "in_layer")],
             )
             self._rsm_vao = self.ctx.vertex_array(
-                self.rsm_program, [(self._vbo, "3f 3f 24x 1f 1f 4x", "in_pos", "in_nrm",
-                                   "in_recv", "in_alpha")])
+                self.rsm_program, [(self._vbo, "3f 3f 24x 1f 1f 4x 2f 1f", "in_pos",
+                                   "in_nrm", "in_recv", "in_alpha", "in_uv", "in_layer")])
         self.reflectance = np.ascontiguousarray(data[:, 0, 9:12])
         if specular is not None:
             self.specular = np.asarray(specular, np.float32).reshape(t, 3)
@@ -340,17 +381,38 @@ class Rasterizer:
                     program, [(self._vbo, *layout)])
         self._key = key
 
+    def _upload_alpha_maps(self, alpha_maps, data: np.ndarray) -> None:
+        """The alpha maps as one texture array (ALPHA_MAP_SIDE^2 layers, bilinear), their
+        layer and UVs into the vertex ``data``; none: the array released."""
+        if self._alpha_maps is not None:
+            self._alpha_maps.release()
+            self._alpha_maps = None
+        if alpha_maps is None:
+            return
+        layer, uvs, maps = alpha_maps
+        side = ALPHA_MAP_SIDE
+        stack = np.stack([_resampled(np.asarray(m, np.float32)[..., 0], side) for m in maps])
+        self._alpha_maps = self.ctx.texture_array((side, side, len(maps)), 1,
+                                                  np.ascontiguousarray(stack).tobytes(),
+                                                  dtype="f4")
+        import moderngl
+
+        self._alpha_maps.filter = (moderngl.LINEAR, moderngl.LINEAR)
+        data[..., 15:17] = np.asarray(uvs, np.float32).reshape(-1, 3, 2)
+        data[..., 17] = np.asarray(layer, np.float32).reshape(-1, 1)
+
     def _programs(self) -> dict:
         """The textured passes' programs and vertex layouts, compiled on first use."""
         if "gbuffer" not in self._textured:
             for name, (vs, fs) in (("gbuffer", TEXTURED_SHADERS),
                                    ("rsm", TEXTURED_RSM_SHADERS)):
                 self._textured[name] = self.ctx.program(vertex_shader=vs, fragment_shader=fs)
-        return {"gbuffer": (self._textured["gbuffer"], ("3f 3f 3f 3f 1f 1f 1f", "in_pos",
+        return {"gbuffer": (self._textured["gbuffer"], ("3f 3f 3f 3f 1f 1f 1f 2f 1f", "in_pos",
                                                         "in_nrm", "in_alb", "in_refl",
-                                                        "in_recv", "in_alpha", "in_trans")),
-                "rsm": (self._textured["rsm"], ("3f 3f 24x 1f 1f 4x", "in_pos", "in_nrm",
-                                                "in_recv", "in_alpha"))}
+                                                        "in_recv", "in_alpha", "in_trans",
+                                                        "in_uv", "in_layer")),
+                "rsm": (self._textured["rsm"], ("3f 3f 24x 1f 1f 4x 2f 1f", "in_pos", "in_nrm",
+                                                "in_recv", "in_alpha", "in_uv", "in_layer"))}
 
     def release_geometry(self) -> None:
         vaos = [self._textured.pop(k) for k in ("gbuffer_vao", "rsm_vao") if k in self._textured]
@@ -400,6 +462,10 @@ class Rasterizer:
         program["view_dir"].value = tuple(view_dir.astype(np.float32))
         program["ortho"].value = int(ortho)
         program["hide"].value = 2 * int(hide)
+        if self._alpha_maps is not None:
+            self._alpha_maps.use(location=ALPHA_MAP_UNIT)
+            if "alpha_maps" in program:
+                program["alpha_maps"].value = ALPHA_MAP_UNIT
         program["seed"].value, program["samples"].value = (int(v) for v in seed)
         vao.render()
 

@@ -46,6 +46,9 @@ class Material:
     # BSDF's share); every pass keeps a fragment with this probability (hashed alpha), so
     # the albedo, emission and glossy reflectance above are those of the covered part.
     alpha: float = 1.0
+    # An image's alpha (pixels (H, W, 1), rows bottom-first) the coverage takes per point of
+    # the material's UV map instead of ``alpha`` (which is then 1); None: none
+    alpha_texture: Texture | None = None
     # Share of the Diffuse Color that is a Translucent BSDF's: its light comes through the
     # surface from the far side (the side away from the viewer), not from the near side
     translucency: float = 0.0
@@ -366,6 +369,23 @@ class Scene:
         if (alphas >= 1.0).all():
             return None
         return alphas[np.clip(self.material_index, 0, alphas.size - 1)]
+
+    def alpha_maps(self) -> tuple[np.ndarray, list] | None:
+        """(per-triangle layer (T,) int32, -1: none; the distinct Material.alpha_texture
+        pixels, one per layer) for the rasteriser's per-point coverage; None without any (or
+        without texture coordinates)."""
+        if self.uvs is None or not any(m.alpha_texture is not None for m in self.materials):
+            return None
+        layers, maps, seen = np.full(len(self.materials) + 1, -1, np.int32), [], {}
+        for i, m in enumerate(self.materials):
+            tex = m.alpha_texture
+            if tex is not None:
+                key = tex.digest or id(tex.pixels)
+                if key not in seen:
+                    seen[key] = len(maps)
+                    maps.append(tex.pixels)
+                layers[i] = seen[key]
+        return layers[np.clip(self.material_index, 0, len(self.materials))], maps
 
     def translucency_per_triangle(self) -> np.ndarray | None:
         """(T,) float32 Material.translucency (clipped to 0-1) per triangle; None when no
