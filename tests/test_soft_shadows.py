@@ -287,3 +287,43 @@ def test_compiled_pyramid_blocks_are_the_numpy_ones():
         want = direct._blocks(view, depth, eye)
         got = direct._compiled.pyramid_blocks(view, depth, eye, 1 << direct.PYRAMID_FROM)
         np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
+
+
+def _rectangle_form_factor(x1, x2, y1, y2, h):
+    """Form factor from a point to a parallel rectangle [x1, x2] x [y1, y2] at height h (its
+    coordinates relative to the point): the corner rectangles' signed sum (_corner)."""
+    f = 0.0
+    for x, sx in ((x2, 1), (x1, -1)):
+        for y, sy in ((y2, 1), (y1, -1)):
+            f = f + sx * sy * np.sign(x) * np.sign(y) * _corner(np.abs(x) / h, np.abs(y) / h)
+    return f
+
+
+def test_penumbra_of_a_wide_panel_is_the_irradiance_of_its_unblocked_part():
+    """A 2 x 0.5 m panel at 2 m over the plate edge at 1 m (_edge_scene): a floor point at x
+    sees the panel's part beyond -x, the nearer part, which lights it most. Its shadowed
+    irradiance is that sub-rectangle's form factor (Siegel & Howell), not the full panel's
+    times the unblocked share of its area (8 % darker on the penumbra's lit half)."""
+    a, b, h = 1.0, 0.25, 2.0
+    light = Light("Panel", "AREA", light_matrix((0, 0, h), (0, 0, -1)), power=POWER,
+                  size=(2 * a, 2 * b))
+    eng, scene, bounds = _edge_scene(light)
+    shadow = eng.shadow_map(scene, light, bounds, 512)
+    rng = np.random.default_rng(5)
+    n = 4000
+    x, y = rng.uniform(-0.9, 0.9, n), rng.uniform(-0.5, 0.5, n)
+    pos = np.c_[x, y, np.zeros(n)]
+    nrm = np.tile([0.0, 0.0, 1.0], (n, 1))
+    with jit.disabled():
+        got = direct.irradiance(light, pos, nrm, shadow)[:, 0]
+    radiance = POWER / (np.pi * 4 * a * b)
+    want = np.pi * radiance * _rectangle_form_factor(-2 * x, a - x, -b - y, b - y, h)
+    full = np.pi * radiance * _rectangle_form_factor(-a - x, a - x, -b - y, b - y, h)
+    area_share = full * (a + x) / (2 * a)  # the unweighted taps' expectation
+    # per quarter of the penumbra, from the umbra's side: the unblocked share of the area
+    # reads 1.72, 1.15, 0.92, 0.92 of it; the taps weighted by their strata's form factors
+    # 0.74 (a sliver of the panel: 1 to 2 of the 6 strata across it), 0.95, 1.00, 0.99
+    for lo, tol in ((-0.45, 0.07), (0.0, 0.02), (0.45, 0.02)):
+        k = (x >= lo) & (x < lo + 0.45)
+        assert got[k].sum() / want[k].sum() == pytest.approx(1.0, abs=tol), lo
+        assert abs(area_share[k].sum() / want[k].sum() - 1.0) > 2 * tol  # it tells them apart

@@ -712,12 +712,34 @@ def _pcss(lp, mats, ortho, scale, depths, face_view, single, res, sun, round_, s
         width_px = extent * (1.0 - s) / (s * dist) / texel
     if not width_px >= 1.0:
         return hard
-    hits = 0
+    # direct._tap_weights: each stratum's form factor (the sun's: equal)
+    ax, ay, az = uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx
+    seen = 0.0
+    total = 0.0
     for k in range(FILTER_SIDE * FILTER_SIDE):
         x, y, z = _tap(k, FILTER_SIDE, sa, sb, round_, ux, uy, uz, vx, vy, vz, s, sun, lp,
                        qx, qy, qz)
-        _, blocked = _lookup(lp, mats, ortho, scale, depths, face_view, single, res, x, y, z,
-                             qx, qy, qz, nx, ny, nz, dist, bias)
-        if blocked:
-            hits += 1
-    return 1.0 - hits / (FILTER_SIDE * FILTER_SIDE)
+        if sun:
+            w = 1.0
+        else:
+            a, b = _stratum(k, FILTER_SIDE, sa, sb, round_)
+            dx = lp[0] + a * ux + b * vx - px
+            dy = lp[1] + a * uy + b * vy - py
+            dz = lp[2] + a * uz + b * vz - pz
+            d2 = dx * dx + dy * dy + dz * dz
+            w = (abs(dx * ax + dy * ay + dz * az) * max(dx * nx + dy * ny + dz * nz, 0.0)
+                 / max(d2 * d2, 1e-300))
+        total += w
+        if not _lookup(lp, mats, ortho, scale, depths, face_view, single, res, x, y, z,
+                       qx, qy, qz, nx, ny, nz, dist, bias)[1]:
+            seen += w
+    if not total > 0.0:  # no stratum faces the receiver: equal weights
+        seen = 0.0
+        for k in range(FILTER_SIDE * FILTER_SIDE):
+            x, y, z = _tap(k, FILTER_SIDE, sa, sb, round_, ux, uy, uz, vx, vy, vz, s, sun,
+                           lp, qx, qy, qz)
+            if not _lookup(lp, mats, ortho, scale, depths, face_view, single, res, x, y, z,
+                           qx, qy, qz, nx, ny, nz, dist, bias)[1]:
+                seen += 1.0
+        total = FILTER_SIDE * FILTER_SIDE
+    return seen / total

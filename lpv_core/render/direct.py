@@ -9,8 +9,8 @@ over the emitter (lights.area_irradiance). Cycles' "Diffuse Direct" pass is irra
 Shadows: a hard light (no radius, no sun angle) is 2x2 percentage-closer filtered; a light
 with a size casts percentage-closer soft shadows [Fernando 2005] on the same map: a blocker
 search over the light's footprint, the penumbra from similar triangles, then stratified taps
-over it, every tap compared against the receiver's own plane through that texel's centre
-(docs/algorithm.md, "Soft shadows").
+over it, every tap compared against the receiver's own plane through that texel's centre and
+weighted by its stratum's form factor (docs/algorithm.md, "Soft shadows").
 """
 
 from __future__ import annotations
@@ -606,8 +606,28 @@ def _soft(shadow: ShadowMap, src: Source, positions, normals, face_of, p_off, di
     rep = lambda arr: np.repeat(arr[todo], k, axis=0)
     _, blocked = _lookup(shadow, x.reshape(-1, 3), rep(p_off), rep(normals), rep(dist),
                          rep(bias))
-    vis[todo] = 1.0 - blocked.reshape(-1, k).mean(axis=1)
+    w = _tap_weights(src, ortho, c, positions[todo], normals[todo], u[todo], v[todo],
+                     FILTER_SIDE, sa[todo], sb[todo])
+    vis[todo] = (w * ~blocked.reshape(-1, k)).sum(axis=1) / w.sum(axis=1)  # exact 0 and 1
     return vis
+
+
+def _tap_weights(src: Source, ortho: bool, c, p, n, u, v, side, sa, sb) -> np.ndarray:
+    """(M, side^2) weights: each stratum's share of the receiver's irradiance,
+    its point's form factor |n_l.d| max(n.d, 0) / |d|^4 (d from the receiver p to the point,
+    n_l the source's normal u x v): near a large light its near part lights most, and
+    the unweighted share of taps made the penumbra too dark. The sun's cone (and a receiver
+    no stratum faces): equal."""
+    m = p.shape[0]
+    if ortho:
+        return np.ones((m, side * side))
+    a, b = _strata(side, sa, sb, src.kind != RECTANGLE)
+    d = c + a[..., None] * u[:, None] + b[..., None] * v[:, None] - p[:, None]
+    d2 = np.einsum("ijk,ijk->ij", d, d)
+    axis = np.cross(u, v)
+    w = (np.abs(np.einsum("ijk,ik->ij", d, axis))
+         * np.maximum(np.einsum("ijk,ik->ij", d, n), 0.0) / np.maximum(d2 * d2, 1e-300))
+    return np.where(w.sum(axis=1, keepdims=True) > 0.0, w, 1.0)
 
 
 def visibility(shadow: ShadowMap, positions: np.ndarray, normals: np.ndarray,
