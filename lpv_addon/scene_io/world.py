@@ -4,7 +4,8 @@ A colour (no nodes, or a Background with an unlinked colour) is a 1x1 map; an En
 Texture (equirectangular or mirror ball, behind an optional Mapping node) is read from its
 image's pixels in Python; everything else (the Sky Texture of every type, other node graphs)
 is rendered by Cycles itself through an equirectangular camera in a temporary scene, cached by
-a digest of the node tree's values in memory and on disk. A Sky Texture's sun disc is far
+a digest of the node tree's values in memory and on disk; its Light Path nodes read as for a
+diffuse ray (DIFFUSE_RAY), since the map lights surfaces. A Sky Texture's sun disc is far
 smaller than a map texel: it is taken out of the map and returned as a SUN light whose
 irradiance is measured on Cycles' own render of the disc; an image's (or other graph's) sun,
 a compact very bright region of the map, is split off the map as a SUN light too
@@ -37,6 +38,28 @@ MISSING = (1.0, 0.0, 1.0)  # Cycles' colour for a missing texture
 # Camera orientation of an equirectangular panorama in Blender's convention (measured: the
 # camera's map then matches lpv_core World's u/v, rows top-first in the file).
 _PANO_EULER = (math.pi / 2, 0.0, -math.pi / 2)
+# What a Light Path node reads in the bake of the lighting map: the World as a diffuse bounce
+# off a surface seen by the camera meets it (the camera's own view of the background, Is
+# Camera Ray 1, would light the scene with an artist's camera-only branch). Cycles lights a
+# diffuse surface by two estimators, MIS-weighted: the BSDF-sampled diffuse ray that reaches
+# the background (shade_background.h: the path's flag PATH_RAY_DIFFUSE | PATH_RAY_REFLECT |
+# PATH_RAY_EMISSION, bounce 1, diffuse bounce 1) and the World's light sample (light/sample.h
+# light_sample_shader_eval: PATH_RAY_EMISSION only, bounce 0). Both give Is Camera Ray 0 and
+# Is Shadow Ray 0; where they differ the BSDF ray's value is taken, the strategy whose MIS
+# weight dominates for a smooth World under a diffuse surface (cos/pi against the map's pdf):
+#   Is Camera Ray 0, Is Shadow Ray 0 (neither estimator sets PATH_RAY_CAMERA / _SHADOW);
+#   Is Diffuse Ray 1, Is Reflection Ray 1 (a diffuse reflection; the light sample reads 0);
+#   Is Glossy / Singular / Transmission / Volume Scatter Ray 0 (not set by a diffuse bounce);
+#   Ray Depth 2 (svm light_path.h: the path's bounce 1, + 1 for a background evaluation,
+#   PATH_RAY_EMISSION; the camera's view reads 1, measured; the light sample reads 1);
+#   Diffuse Depth 1 (the light sample reads 0); Glossy, Transparent, Transmission Depth 0.
+# Ray Length (shader_setup_from_background sets 0) and Portal Depth are the same for every ray
+# reaching the background: left as the bake computes them.
+DIFFUSE_RAY = {"Is Camera Ray": 0.0, "Is Shadow Ray": 0.0, "Is Diffuse Ray": 1.0,
+               "Is Glossy Ray": 0.0, "Is Singular Ray": 0.0, "Is Reflection Ray": 1.0,
+               "Is Transmission Ray": 0.0, "Is Volume Scatter Ray": 0.0, "Ray Depth": 2.0,
+               "Diffuse Depth": 1.0, "Glossy Depth": 0.0, "Transparent Depth": 0.0,
+               "Transmission Depth": 0.0}
 _MEMORY: dict[str, tuple] = {}  # digest -> (map, sun) of bakes and image maps
 _NOT_DIGEST = frozenset({"location", "location_absolute", "width", "height", "select", "name",
                          "show_options", "show_preview", "hide", "show_texture", "label",
@@ -328,6 +351,7 @@ def world_digest(world, scene) -> str:
     size and Blender's version."""
     return hashlib.sha256("|".join(map(str, (
         tree_digest(world.node_tree), scene.frame_current, BAKE_SIZE, BAKE_SAMPLES,
+        sorted(DIFFUSE_RAY.items()),
         SUN_PIXELS, SUN_FOV, core.sky.SUN_MAX_DIAMETER, core.sky.SUN_MIN_SHARE,
         bpy.app.version))).encode()).hexdigest()[:32]
 
@@ -351,6 +375,10 @@ def _baked(world, scene, notes: list[str]):
     """(map, sun) of a world only Cycles evaluates: from memory, disk, or a new bake; else a
     uniform map of the world's viewport colour, reported."""
     world = world.original if getattr(world, "original", None) is not None else world
+    if _reads_light_path(world.node_tree):
+        notes.append(f"World '{world.name}': its Light Path node reads as for a diffuse ray "
+                     "(Is Camera Ray 0) in the World's lighting map; the camera sees the "
+                     "lighting map as the background, not the graph's camera branch")
     digest = world_digest(world, scene)
     if digest in _MEMORY:
         return _MEMORY[digest]
@@ -390,9 +418,11 @@ def bake(world, scene) -> tuple:
     copy = world.copy()
     if hasattr(copy, "cycles"):  # camera rays only: no light importance map (1-3 s per render)
         copy.cycles.sampling_method = "NONE"
+    groups: list = []  # the copy's own copies of node groups holding a Light Path node
     skies = [n for n in _nodes(copy.node_tree) if n.bl_idname == "ShaderNodeTexSky"
              and n.sky_type in SUN_SKIES and n.sun_disc and not n.mute and n.sun_size > 0]
     try:
+        _as_diffuse_ray(copy.node_tree, groups)
         with _temporary_scene(copy, scene.frame_current) as (sc, cam):
             for n in skies:
                 n.sun_disc = False
@@ -405,6 +435,8 @@ def bake(world, scene) -> tuple:
                 sun = _measure_sun(sc, cam, skies)
     finally:
         bpy.data.worlds.remove(copy)
+        for g in groups:
+            bpy.data.node_groups.remove(g)
     return np.ascontiguousarray(radiance), sun
 
 
@@ -413,6 +445,35 @@ def _nodes(tree, depth: int = 0):
         yield n
         if getattr(n, "node_tree", None) is not None and depth < 8:
             yield from _nodes(n.node_tree, depth + 1)
+
+
+def _reads_light_path(tree) -> bool:
+    """Whether a Light Path node (not muted) of ``tree`` or its groups feeds anything."""
+    return tree is not None and any(
+        n.bl_idname == "ShaderNodeLightPath" and not n.mute
+        and any(o.is_linked for o in n.outputs) for n in _nodes(tree))
+
+
+def _as_diffuse_ray(tree, groups: list, depth: int = 0) -> None:
+    """Replace, in ``tree`` (a temporary copy's), every linked Light Path output of
+    DIFFUSE_RAY by a Value node of that constant; a group holding one is copied first (into
+    ``groups``, for the caller to remove) so the user's group is never touched."""
+    for node in list(tree.nodes):
+        sub = getattr(node, "node_tree", None)
+        if sub is not None and depth < 8 and _reads_light_path(sub):
+            node.node_tree = sub = sub.copy()
+            groups.append(sub)
+            _as_diffuse_ray(sub, groups, depth + 1)
+        if node.bl_idname != "ShaderNodeLightPath" or node.mute:
+            continue
+        for out in node.outputs:
+            if out.name not in DIFFUSE_RAY or not out.is_linked:
+                continue
+            value = tree.nodes.new("ShaderNodeValue")
+            value.outputs[0].default_value = DIFFUSE_RAY[out.name]
+            for link in list(out.links):
+                muted = link.is_muted
+                tree.links.new(value.outputs[0], link.to_socket).is_muted = muted
 
 
 def sun_direction(elevation: float, rotation: float) -> np.ndarray:
