@@ -64,6 +64,15 @@ bpy.ops.wm.save_as_mainfile(filepath=os.path.join(tmp, "scene.blend"))
 
 scene.render.filepath = os.path.join(tmp, "f12", "still.exr")
 out["f12"] = sorted(bpy.ops.render.render(write_still=True))
+# Output > Render Region, without and with Crop to Render Region
+r = scene.render
+r.use_border, r.border_min_x, r.border_max_x = True, 0.25, 0.75
+r.border_min_y, r.border_max_y = 0.2, 0.8
+for crop in (False, True):
+    r.use_crop_to_border = crop
+    r.filepath = os.path.join(tmp, "border_crop" if crop else "border", "still.exr")
+    out["border_crop" if crop else "border"] = sorted(bpy.ops.render.render(write_still=True))
+r.use_border = r.use_crop_to_border = False
 scene.render.filepath = os.path.join(tmp, "anim", "frame_")
 out["anim"] = sorted(bpy.ops.render.render(animation=True))
 
@@ -282,6 +291,26 @@ def test_f12_exr_passes_equal_the_batch_cli(run, cli):
     for name in PASSES:
         assert ours[name].shape == (H, W, 4 if name == "Combined" else 3), name
     _same(ours, ref, "F12")
+
+
+def test_render_region_renders_that_region_of_the_frame(run):
+    """Output > Render Region (x 0.25-0.75, y 0.2-0.8 from the bottom): the region holds the
+    full F12 frame's pixels there, Crop to Render Region keeps just them (the region's
+    result was the whole frame's size, refused, and with Crop Blender crashed)."""
+    tmp, out, _ = run
+    assert out["border"] == out["border_crop"] == ["FINISHED"]
+    full = _exr(tmp / "f12" / "still.exr")
+    region = _exr(tmp / "border" / "still.exr")
+    crop = _exr(tmp / "border_crop" / "still.exr")
+    x0, x1 = int(0.25 * W), int(0.75 * W)
+    y0, y1 = H - int(0.8 * H), H - int(0.2 * H)  # rows top-first
+    inside = {k: v[y0:y1, x0:x1] for k, v in full.items()}
+    assert crop["Combined"].shape[:2] == (y1 - y0, x1 - x0)
+    _same(crop, inside, "crop")
+    _same({k: v[y0:y1, x0:x1] for k, v in region.items()}, inside, "region")
+    outside = np.ones((H, W), bool)
+    outside[y0:y1, x0:x1] = False
+    assert float(np.abs(region["Diffuse Color"][outside]).max()) == 0.0
 
 
 def test_animation_renders_three_frames_with_animated_values(run, cli):

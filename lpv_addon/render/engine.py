@@ -63,14 +63,32 @@ def render_passes(scene, stop=lambda: False) -> tuple[dict, dict]:
         raise Cancelled from None
 
 
-def result_pixels(name: str, passes: dict) -> np.ndarray | None:
-    """A pass as Blender's render result holds it (bottom row first, flat). Film >
-    Transparent is the core's (Scene.film_transparent: Combined's alpha is the coverage and
-    no World behind it)."""
+def result_pixels(name: str, passes: dict, region: tuple[int, int, int, int] | None = None
+                  ) -> np.ndarray | None:
+    """A pass as Blender's render result holds it (bottom row first, flat), only the render
+    region ``region`` (x, y from the bottom left, width, height; None: the whole frame).
+    Film > Transparent is the core's (Scene.film_transparent: Combined's alpha is the
+    coverage and no World behind it)."""
     arr = passes.get(name)
     if arr is None:
         return None
-    return np.ascontiguousarray(arr[::-1], np.float32).ravel()
+    arr = arr[::-1]
+    if region is not None:
+        x, y, w, h = region
+        arr = arr[y:y + h, x:x + w]
+    return np.ascontiguousarray(arr, np.float32).ravel()
+
+
+def result_region(render, width: int, height: int, result) -> tuple[int, int, int, int]:
+    """Where Blender's render result lies in the frame: the whole frame, or with a Render
+    Region (Output > Render Region) the region it was clipped to, its corner as Blender
+    places it (border x frame size, truncated)."""
+    rw, rh = int(result.resolution_x), int(result.resolution_y)
+    if (rw, rh) == (width, height) or not render.use_border:
+        return 0, 0, rw, rh
+    x = min(max(int(render.border_min_x * width), 0), width - rw)
+    y = min(max(int(render.border_min_y * height), 0), height - rh)
+    return x, y, rw, rh
 
 
 class LPVRenderEngine(bpy.types.RenderEngine):
@@ -117,10 +135,15 @@ class LPVRenderEngine(bpy.types.RenderEngine):
         if self.test_break():
             return
         result = self.begin_result(0, 0, w, h, layer=depsgraph.view_layer.name)
-        for rpass in result.layers[0].passes:
-            pixels = result_pixels(rpass.name, passes)
-            if pixels is not None:
-                rpass.rect.foreach_set(pixels)
+        try:  # the result always ended: an unended one takes Blender down
+            region = result_region(scene.render, w, h, result)
+            for rpass in result.layers[0].passes:
+                pixels = result_pixels(rpass.name, passes, region)
+                if pixels is not None:
+                    rpass.rect.foreach_set(pixels)
+        except BaseException:
+            self.end_result(result, cancel=True)
+            raise
         self.end_result(result)
         self.update_progress(1.0)
 

@@ -41,7 +41,9 @@ def render(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats | None = N
 
     Each pass is the mean over settings.antialias^2 sub-pixel samples on a regular grid in the
     pixel: Cycles' one-pixel box filter, so that an edge pixel holds the footprint average of
-    both surfaces (and the sky's zero), as the reference does. One sample at the centre
+    both surfaces (and the sky's zero), as the reference does; the diffuse light passes are,
+    as Cycles', the samples' reflected light over their colour (even_divide), so that an edge
+    pixel's Diffuse Direct is its surfaces' irradiance, not a share of it. One sample at the centre
     aliases: measured at 96x96, indirect relative RMSE against Cycles city 0.765 / sunlit room
     0.422 with one sample, 0.637 / 0.391 with 2^2 and 0.618 / 0.380 with 4^2."""
     stats = stats or lpv.stats
@@ -80,11 +82,31 @@ def render(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats | None = N
                 for k, v in sub.dropped.items():
                     stats.dropped[k] = stats.dropped.get(k, 0) + v
             for name, arr in samples.items():
+                if name in LIGHT_PASSES:  # weighted by the sample's colour (below)
+                    arr = arr * samples["Diffuse Color"]
                 if name in total:
                     total[name] += arr
                 else:
                     total[name] = arr.astype(np.float64)
-    return {name: (arr / (s * s)).astype(np.float32) for name, arr in total.items()}
+    color = total["Diffuse Color"]
+    out = {name: arr / (s * s) for name, arr in total.items()}
+    for name in LIGHT_PASSES:  # Cycles: the samples' light over the samples' colour
+        out[name] = even_divide(total[name], color)
+    return {name: arr.astype(np.float32) for name, arr in out.items()}
+
+
+LIGHT_PASSES = ("Diffuse Direct", "Diffuse Indirect")
+
+
+def even_divide(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a / b per colour channel of (H, W, 3) arrays, as Cycles divides its diffuse light passes
+    by the colour (safe_divide_even_color): a channel whose b is 0 takes the mean ratio of
+    the pixel's other channels, a pixel whose b is 0 in every channel 0."""
+    ok = b > 0
+    ratio = np.where(ok, a / np.where(ok, b, 1.0), 0.0)
+    count = ok.sum(axis=-1, keepdims=True)
+    mean = ratio.sum(axis=-1, keepdims=True) / np.maximum(count, 1)
+    return np.where(ok, ratio, np.where(count > 0, mean, 0.0))
 
 
 def _direct(engine: Engine, scene: Scene, bounds, pos, nrm, stats: Stats, sky_set):
