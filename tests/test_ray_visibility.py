@@ -37,6 +37,17 @@ def _cube_on_floor(setting: str | None):
     bpy.data.objects["Light"].data.energy = 1000.0
     if setting == "film_transparent":
         sc.render.film_transparent = True
+    elif setting == "material_override":  # the view layer's, a clay render
+        clay = bpy.data.materials.new("Clay")
+        if clay.node_tree is None:  # pragma: no cover - Blender < 5 needs nodes switched on
+            clay.use_nodes = True
+        clay.node_tree.nodes["Principled BSDF"].inputs["Base Color"].default_value = (
+            0.2, 0.3, 0.8, 1.0)
+        bpy.context.view_layer.material_override = clay
+    elif setting == "no_environment":  # View Layer > Filter > Environment off
+        bpy.context.view_layer.use_sky = False
+        sc.world.node_tree.nodes["Background"].inputs["Color"].default_value = (0.5, 0.6, 0.8, 1)
+        sc.world.node_tree.nodes["Background"].inputs["Strength"].default_value = 1.0
     elif setting == "holdout_shader":
         tree = cube.active_material.node_tree
         tree.links.new(tree.nodes.new("ShaderNodeHoldout").outputs[0],
@@ -143,3 +154,12 @@ def test_an_edge_pixel_holds_its_surfaces_irradiance(tmp_path):
     assert partial.sum() > 20
     ratio = ours["Diffuse Direct"][partial].mean() / ref["Diffuse Direct"][partial].mean()
     assert 0.6 < ratio < 1.3, ratio
+
+
+@pytest.mark.parametrize("setting", ["material_override", "no_environment"])
+def test_view_layer_settings_are_cycles(tmp_path, setting):
+    """The view layer's Material Override colours everything (it was ignored: Diffuse Color
+    1.9x Cycles'), its Environment filter off leaves the World out (it lit: 2.5x)."""
+    ours, ref = _passes(tmp_path, setting)
+    assert _rmse(ours["Diffuse Color"], ref["Diffuse Color"]) < 0.05
+    assert abs(ours["Diffuse Direct"].mean() / ref["Diffuse Direct"].mean() - 1.0) < 0.03

@@ -122,6 +122,8 @@ def extract_scene(
         settings = settings_from_scene(scene, settings_overrides)
     with timer.phase("world"):
         world, world_notes, world_lights = world_from_blender(scene.world, scene)
+    if not getattr(depsgraph.view_layer, "use_sky", True):  # View Layer > Filter > Environment
+        world, world_notes, world_lights = None, [], []  # off: Cycles draws and lights none
     lights += world_lights
 
     positions, normals, mat_index, obj_index = geo.arrays()
@@ -273,6 +275,9 @@ class _GeometryCollector:
 
     def _slot_table(self, ob) -> np.ndarray:
         slots = [slot.material for slot in ob.material_slots] or [None]
+        override = getattr(self.view_layer, "material_override", None)
+        if override is not None:  # the view layer's Material Override, as Cycles renders it
+            slots = [override] * len(slots)
         return np.array([self._material_id(m) for m in slots], np.int32)
 
     def _material_id(self, mat) -> int:
