@@ -544,6 +544,30 @@ def test_missing_image_is_magenta_and_reported(empty_file, capfd):
     assert "LPV GI: material 'brick': image 'bricks' is missing" in capfd.readouterr().err
 
 
+def test_an_image_sequence_is_named_not_called_missing(empty_file, tmp_path):
+    """An image sequence whose frames exist but are not loaded (Blender holds no pixels for
+    it in a background process) is named as a sequence, not as a missing file."""
+    still = bpy.data.images.new("frame", 2, 2)
+    still.filepath_raw = str(tmp_path / "seq.0001.png")
+    still.file_format = "PNG"
+    still.save()
+    bpy.data.images.remove(still)
+    seq = bpy.data.images.load(str(tmp_path / "seq.0001.png"))
+    seq.source = "SEQUENCE"
+    mat, nt, out = new_material("screen")
+    p = principled(nt)
+    t = nt.nodes.new("ShaderNodeTexImage")
+    t.image = seq
+    nt.links.new(t.outputs["Color"], p.inputs["Base Color"])
+    to_surface(nt, out, p)
+    quad("tv", mat)
+    s = run()
+    lines = [a for a in s.approximated if "seq.0001.png" in a]
+    assert not seq.has_data  # Blender loads no frame of it here
+    assert lines and "is an image sequence, whose frames are not read" in lines[0]
+    assert "missing" not in lines[0]
+
+
 def test_non_finite_node_values_are_counted_and_repaired(empty_file):
     mat, nt, out = new_material("nan")
     p = principled(nt)

@@ -572,6 +572,13 @@ class _Evaluator:
             self.defaulted += _defaulted[digest]
             self.note(f"image '{image.name}': {_defaulted[digest]} non-finite or negative "
                       "texels set to 0")
+        if rgb is None and image.source in ("SEQUENCE", "MOVIE"):
+            kind = "an image sequence" if image.source == "SEQUENCE" else "a movie"
+            line = (f"image '{image.name}' is {kind}, whose frames are not read: magenta "
+                    "(use a still image)")
+            self.note(line)
+            _warn(f"LPV GI: material '{self.mat.name}': {line}")
+            return _const(MAGENTA)
         if rgb is None:
             path = bpy.path.abspath(image.filepath) if image.filepath else "(no file)"
             line = f"image '{image.name}' is missing ({path}): magenta, as Cycles shows it"
