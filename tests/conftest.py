@@ -59,3 +59,40 @@ def surface_points(rng, positions, m: int):
     pos = t[:, 0] + a * (t[:, 1] - t[:, 0]) + b * (t[:, 2] - t[:, 0])
     nrm = np.cross(t[:, 1] - t[:, 0], t[:, 2] - t[:, 0])
     return pos, nrm / np.linalg.norm(nrm, axis=1, keepdims=True)
+
+
+def factory_scene(resolution):
+    """Blender's factory file (the default cube, light, camera and World) rendering
+    ``resolution`` at 100 %: the scene artists start from."""
+    import bpy
+
+    bpy.ops.wm.read_factory_settings(use_empty=False)
+    sc = bpy.context.scene
+    sc.render.resolution_x, sc.render.resolution_y = resolution
+    sc.render.resolution_percentage = 100
+    return sc
+
+
+def lpv_and_cycles(tmp_path, scene, resolution, samples: int = 32, rgb: bool = False,
+                   **cycles_settings):
+    """(LPV's passes, Cycles' passes, the extracted core scene) of the bpy ``scene``: Cycles
+    (render_cycles_passes, one diffuse bounce, ``cycles_settings``) into ``tmp_path``, then
+    LPV at the scene's settings; passes float64, (H, W, 3) with ``rgb``."""
+    import bpy
+    import numpy as np
+
+    import lpv_core as core
+    from lpv_addon.render import cycles
+    from lpv_addon.scene_io.extract import extract_scene
+    from tools import report
+
+    exr = tmp_path / "cycles.exr"
+    cycles.render_cycles_passes(str(exr), samples=samples, resolution=resolution,
+                                **cycles_settings)
+    core_scene = extract_scene(bpy.context.evaluated_depsgraph_get(), scene, resolution)
+    eng = report._make_engine(core.render.raster.Rasterizer())
+    ours = report.run_lpv(core_scene, core_scene.settings, eng, 1)["passes"]
+    keep = slice(0, 3) if rgb else slice(None)
+    return ({k: np.asarray(v, np.float64)[..., keep] for k, v in ours.items()},
+            {k: np.asarray(v, np.float64)[..., keep]
+             for k, v in report._read_exr(str(exr)).items()}, core_scene)

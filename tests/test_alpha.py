@@ -12,6 +12,8 @@ import pytest
 
 bpy = pytest.importorskip("bpy")
 
+from conftest import factory_scene, lpv_and_cycles
+
 pytestmark = pytest.mark.bpy
 
 RES = (64, 48)
@@ -20,10 +22,7 @@ RES = (64, 48)
 def _card_over_floor(transparent_mix: bool):
     """A 10 m diffuse floor, a 3 m red card 1 m over it (Alpha 0.3, or a Diffuse mixed with a
     Transparent BSDF at 0.7), the default light 4 m up, seen from the default camera."""
-    bpy.ops.wm.read_factory_settings(use_empty=False)
-    sc = bpy.context.scene
-    sc.render.resolution_x, sc.render.resolution_y = RES
-    sc.render.resolution_percentage = 100
+    sc = factory_scene(RES)
     bpy.data.objects.remove(bpy.data.objects["Cube"])
     sc.world.node_tree.nodes["Background"].inputs["Strength"].default_value = 0.0
     bpy.ops.mesh.primitive_plane_add(size=10)
@@ -60,22 +59,12 @@ def _card_over_floor(transparent_mix: bool):
 @pytest.mark.parametrize("transparent_mix", [False, True])
 def test_a_partly_transparent_card_is_seen_through_and_shadows_by_its_coverage(
         tmp_path, transparent_mix):
-    import lpv_core as core
-    from lpv_addon.render import cycles
-    from lpv_addon.scene_io.extract import extract_scene
     from lpv_core.render.error import relative_rmse
-    from tools import report
 
-    sc = _card_over_floor(transparent_mix)
-    exr = tmp_path / "cycles.exr"
-    cycles.render_cycles_passes(str(exr), samples=32, resolution=RES)
-    ref = {k: np.asarray(v, np.float64)[..., :3] for k, v in report._read_exr(str(exr)).items()}
-    scene = extract_scene(bpy.context.evaluated_depsgraph_get(), sc, RES)
+    ours, ref, scene = lpv_and_cycles(tmp_path, _card_over_floor(transparent_mix), RES,
+                                      rgb=True)
     assert math.isclose(scene.materials[-1].alpha, 0.3, abs_tol=1e-6) or math.isclose(
         min(m.alpha for m in scene.materials), 0.3, abs_tol=1e-6)
-    eng = report._make_engine(core.render.raster.Rasterizer())
-    ours = {k: np.asarray(v, np.float64)[..., :3]
-            for k, v in report.run_lpv(scene, scene.settings, eng, 1)["passes"].items()}
     # through the card the floor shows: Diffuse Color 0.3 x card + 0.7 x floor
     # (drawn opaque at 0.3 x its colour: Diffuse Color relative RMSE 0.33, Combined 0.88x)
     assert relative_rmse(ours["Diffuse Color"], ref["Diffuse Color"]) < 0.12
@@ -89,11 +78,7 @@ def test_an_image_alpha_cuts_the_card_per_texel(tmp_path):
     card's UV map): the floor shows through and is lit through the holes texel by texel
     (measured 0.077 and 0.35; its mean alpha, 0.5, as a uniform coverage: Diffuse Color
     relative RMSE 0.12, Diffuse Direct 0.50)."""
-    import lpv_core as core
-    from lpv_addon.render import cycles
-    from lpv_addon.scene_io.extract import extract_scene
     from lpv_core.render.error import relative_rmse
-    from tools import report
 
     sc = _card_over_floor(False)
     tree = bpy.data.materials["Card"].node_tree
@@ -105,14 +90,8 @@ def test_an_image_alpha_cuts_the_card_per_texel(tmp_path):
     node = tree.nodes.new("ShaderNodeTexImage")
     node.image, node.interpolation = image, "Closest"
     tree.links.new(node.outputs["Alpha"], tree.nodes["Principled BSDF"].inputs["Alpha"])
-    exr = tmp_path / "cycles.exr"
-    cycles.render_cycles_passes(str(exr), samples=32, resolution=RES)
-    ref = {k: np.asarray(v, np.float64)[..., :3] for k, v in report._read_exr(str(exr)).items()}
-    scene = extract_scene(bpy.context.evaluated_depsgraph_get(), sc, RES)
+    ours, ref, scene = lpv_and_cycles(tmp_path, sc, RES, rgb=True)
     card = next(m for m in scene.materials if m.name == "Card")
     assert card.alpha_texture is not None and card.alpha == 1.0
-    eng = report._make_engine(core.render.raster.Rasterizer())
-    ours = {k: np.asarray(v, np.float64)[..., :3]
-            for k, v in report.run_lpv(scene, scene.settings, eng, 1)["passes"].items()}
     assert relative_rmse(ours["Diffuse Color"], ref["Diffuse Color"]) < 0.1
     assert relative_rmse(ours["Diffuse Direct"], ref["Diffuse Direct"]) < 0.42

@@ -11,6 +11,8 @@ import pytest
 
 bpy = pytest.importorskip("bpy")
 
+from conftest import factory_scene, lpv_and_cycles
+
 from lpv_addon.scene_io import extract
 
 pytestmark = pytest.mark.bpy
@@ -21,10 +23,7 @@ RES = (48, 36)
 def _floor_and_light(**light_settings):
     """Blender's default file: a 10 m grey floor under the default point light (1000 W), the
     default camera, a black World; ``light_settings`` set on the light object."""
-    bpy.ops.wm.read_factory_settings(use_empty=False)
-    sc = bpy.context.scene
-    sc.render.resolution_x, sc.render.resolution_y = RES
-    sc.render.resolution_percentage = 100
+    sc = factory_scene(RES)
     bpy.data.objects.remove(bpy.data.objects["Cube"])
     bpy.ops.mesh.primitive_plane_add(size=10)
     sc.world.node_tree.nodes["Background"].inputs["Strength"].default_value = 0.0
@@ -37,18 +36,8 @@ def _floor_and_light(**light_settings):
 
 def _direct_means(tmp_path, sc):
     """(LPV, Cycles) mean Diffuse Direct of the context scene."""
-    import lpv_core as core
-    from lpv_addon.render import cycles
-    from tools import report
-
-    exr = tmp_path / "cycles.exr"
-    cycles.render_cycles_passes(str(exr), samples=16, resolution=RES)
-    ref = np.asarray(report._read_exr(str(exr))["Diffuse Direct"])[..., :3].mean()
-    scene = extract.extract_scene(bpy.context.evaluated_depsgraph_get(), sc, RES)
-    eng = report._make_engine(core.render.raster.Rasterizer())
-    ours = np.asarray(report.run_lpv(scene, scene.settings, eng, 1)["passes"]
-                      ["Diffuse Direct"])[..., :3].mean()
-    return float(ours), float(ref), scene
+    ours, ref, scene = lpv_and_cycles(tmp_path, sc, RES, samples=16, rgb=True)
+    return float(ours["Diffuse Direct"].mean()), float(ref["Diffuse Direct"].mean()), scene
 
 
 def test_a_lights_node_tree_scales_its_emission_as_in_cycles(tmp_path):

@@ -53,6 +53,18 @@ def to_surface(nt, out, node):
     nt.links.new(node.outputs[0], out.inputs["Surface"])
 
 
+def image_material(name, image, **inputs):
+    """A Principled material (``inputs`` set on it) whose Base Color is ``image`` through the
+    render UV map: (the material, its Image Texture node)."""
+    mat, nt, out = new_material(name)
+    p = principled(nt, **inputs)
+    t = nt.nodes.new("ShaderNodeTexImage")
+    t.image = image
+    nt.links.new(t.outputs["Color"], p.inputs["Base Color"])
+    to_surface(nt, out, p)
+    return mat, t
+
+
 def shader(kind, **inputs):
     def build(nt, out):
         node = nt.nodes.new(kind)
@@ -497,12 +509,9 @@ def test_image_texture_pixels_colour_space_and_mapping(empty_file):
     values[..., 3] = 1.0  # opaque: alpha is the Cycles comparison's
     img.pixels.foreach_set(values.ravel())
     stored = np.array(img.pixels[:], np.float64).reshape(2, 3, 4)[..., :3]
-    mat, nt, out = new_material("tex")
-    p = principled(nt, Base_Color=(1, 1, 1, 1), Specular_IOR_Level=0.0)
-    t = nt.nodes.new("ShaderNodeTexImage")
-    t.image, t.extension = img, "EXTEND"
-    nt.links.new(t.outputs["Color"], p.inputs["Base Color"])
-    to_surface(nt, out, p)
+    mat, t = image_material("tex", img, Base_Color=(1, 1, 1, 1), Specular_IOR_Level=0.0)
+    t.extension = "EXTEND"
+    nt = mat.node_tree
     ob = quad("q", mat)
     ob.data.uv_layers.new(name="UVMap").uv.foreach_set("vector", [0, 0, 1, 0, 1, 1, 0, 1])
     s = run()
@@ -529,12 +538,7 @@ def test_image_texture_pixels_colour_space_and_mapping(empty_file):
 
 
 def test_missing_image_is_magenta_and_reported(empty_file, capfd):
-    mat, nt, out = new_material("brick")
-    p = principled(nt, Specular_IOR_Level=0.0)
-    t = nt.nodes.new("ShaderNodeTexImage")
-    t.image = missing_image("bricks")
-    nt.links.new(t.outputs["Color"], p.inputs["Base Color"])
-    to_surface(nt, out, p)
+    mat, _ = image_material("brick", missing_image("bricks"), Specular_IOR_Level=0.0)
     quad("wall", mat)
     s = run()
     assert np.allclose(s.materials[0].albedo, materials.MAGENTA) and s.materials[0].texture is None
@@ -554,12 +558,7 @@ def test_an_image_sequence_is_named_not_called_missing(empty_file, tmp_path):
     bpy.data.images.remove(still)
     seq = bpy.data.images.load(str(tmp_path / "seq.0001.png"))
     seq.source = "SEQUENCE"
-    mat, nt, out = new_material("screen")
-    p = principled(nt)
-    t = nt.nodes.new("ShaderNodeTexImage")
-    t.image = seq
-    nt.links.new(t.outputs["Color"], p.inputs["Base Color"])
-    to_surface(nt, out, p)
+    mat, _ = image_material("screen", seq)
     quad("tv", mat)
     s = run()
     lines = [a for a in s.approximated if "seq.0001.png" in a]
@@ -583,12 +582,7 @@ def test_non_finite_node_values_are_counted_and_repaired(empty_file):
     # A float image with a NaN and a negative texel, a colour attribute with a NaN corner.
     img = bpy.data.images.new("bad texels", 2, 1, float_buffer=True)
     img.pixels.foreach_set([np.nan, 0.5, 0.5, 1.0, -1.0, 0.25, 0.5, 1.0])
-    tex_mat, nt, out = new_material("bad image")
-    p = principled(nt)
-    t = nt.nodes.new("ShaderNodeTexImage")
-    t.image = img
-    nt.links.new(t.outputs["Color"], p.inputs["Base Color"])
-    to_surface(nt, out, p)
+    tex_mat, _ = image_material("bad image", img)
     quad("t", tex_mat).data.uv_layers.new(name="UVMap")
     vc, nt, out = new_material("bad colours")
     attribute("Col")(nt, out)
@@ -612,12 +606,7 @@ def test_texture_cache_rereads_only_the_changed_image(empty_file, tmp_path):
         img.file_format = "PNG"
         img.save()
         images.append(img)
-        mat, nt, out = new_material(f"m{k}")
-        p = principled(nt)
-        t = nt.nodes.new("ShaderNodeTexImage")
-        t.image = img
-        nt.links.new(t.outputs["Color"], p.inputs["Base Color"])
-        to_surface(nt, out, p)
+        mat, _ = image_material(f"m{k}", img)
         quad(f"q{k}", mat).data.uv_layers.new(name="UVMap")
     first = {m.name: m.texture for m in run().materials}
     again = {m.name: m.texture for m in run().materials}
@@ -642,12 +631,7 @@ def test_uvs_follow_the_corners_of_mirrored_instances(empty_file):
     """A mirrored object's corners are swapped to keep its winding: its UVs and colours move
     with them (uv = the local xy of each corner here)."""
     img = bpy.data.images.new("grid", 2, 2)
-    mat, nt, out = new_material("tex")
-    p = principled(nt)
-    t = nt.nodes.new("ShaderNodeTexImage")
-    t.image = img
-    nt.links.new(t.outputs["Color"], p.inputs["Base Color"])
-    to_surface(nt, out, p)
+    mat, _ = image_material("tex", img)
     plain = quad("plain", mat)
     plain.data.uv_layers.new(name="UVMap").uv.foreach_set("vector", [0, 0, 1, 0, 1, 1, 0, 1])
     mirrored = bpy.data.objects.new("mirrored", plain.data)

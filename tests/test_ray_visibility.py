@@ -12,6 +12,8 @@ import pytest
 
 bpy = pytest.importorskip("bpy")
 
+from conftest import factory_scene, lpv_and_cycles
+
 pytestmark = pytest.mark.bpy
 
 RES = (64, 48)
@@ -20,10 +22,7 @@ RES = (64, 48)
 def _cube_on_floor(setting: str | None):
     """Blender's default cube, lifted over a 10 m grey floor, the default light and camera,
     with one visibility ``setting`` of the cube switched."""
-    bpy.ops.wm.read_factory_settings(use_empty=False)
-    sc = bpy.context.scene
-    sc.render.resolution_x, sc.render.resolution_y = RES
-    sc.render.resolution_percentage = 100
+    sc = factory_scene(RES)
     bpy.ops.mesh.primitive_plane_add(size=10)
     for ob, colour in ((bpy.context.object, (0.6, 0.6, 0.6)),
                        (bpy.data.objects["Cube"], (0.8, 0.2, 0.1))):
@@ -68,20 +67,8 @@ def _cube_on_floor(setting: str | None):
 
 
 def _passes(tmp_path, setting):
-    import lpv_core as core
-    from lpv_addon.render import cycles
-    from lpv_addon.scene_io.extract import extract_scene
-    from tools import report
-
-    sc = _cube_on_floor(setting)
-    exr = tmp_path / "cycles.exr"
-    cycles.render_cycles_passes(str(exr), samples=32, resolution=RES)
-    ref = report._read_exr(str(exr))
-    scene = extract_scene(bpy.context.evaluated_depsgraph_get(), sc, RES)
-    eng = report._make_engine(core.render.raster.Rasterizer())
-    ours = report.run_lpv(scene, scene.settings, eng, 1)["passes"]
-    return ({k: np.asarray(v, np.float64) for k, v in ours.items()},
-            {k: np.asarray(v, np.float64) for k, v in ref.items()})
+    ours, ref, _ = lpv_and_cycles(tmp_path, _cube_on_floor(setting), RES)
+    return ours, ref
 
 
 def _rmse(test, ref) -> float:

@@ -6,10 +6,11 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 import pytest
 
 bpy = pytest.importorskip("bpy")
+
+from conftest import factory_scene, lpv_and_cycles
 
 pytestmark = pytest.mark.bpy
 
@@ -20,10 +21,7 @@ def _leaf(closed_box: bool):
     """A 10 m grey floor and a 2 m translucent green square (or, ``closed_box``, the default
     cube, translucent), lit by a 1000 W point light; the default camera sees the leaf's side
     away from the light (the box's lit faces)."""
-    bpy.ops.wm.read_factory_settings(use_empty=False)
-    sc = bpy.context.scene
-    sc.render.resolution_x, sc.render.resolution_y = RES
-    sc.render.resolution_percentage = 100
+    sc = factory_scene(RES)
     sc.world.node_tree.nodes["Background"].inputs["Strength"].default_value = 0.0
     cube = bpy.data.objects["Cube"]
     mat = bpy.data.materials.new("Leaf")
@@ -52,21 +50,10 @@ def _leaf(closed_box: bool):
 
 @pytest.mark.parametrize("closed_box", [False, True])
 def test_translucent_surfaces_are_lit_from_their_far_side(tmp_path, closed_box):
-    import lpv_core as core
-    from lpv_addon.render import cycles
-    from lpv_addon.scene_io.extract import extract_scene
-    from tools import report
-
-    sc = _leaf(closed_box)
-    exr = tmp_path / "cycles.exr"
     # the light through the leaf bounces as Cycles' transmission: one such bounce allowed
-    cycles.render_cycles_passes(str(exr), samples=32, resolution=RES, transmission_bounces=1)
-    ref = {k: np.asarray(v, np.float64)[..., :3] for k, v in report._read_exr(str(exr)).items()}
-    scene = extract_scene(bpy.context.evaluated_depsgraph_get(), sc, RES)
+    ours, ref, scene = lpv_and_cycles(tmp_path, _leaf(closed_box), RES, rgb=True,
+                                      transmission_bounces=1)
     assert any(math.isclose(m.translucency, 1.0) for m in scene.materials)
-    eng = report._make_engine(core.render.raster.Rasterizer())
-    ours = {k: np.asarray(v, np.float64)[..., :3]
-            for k, v in report.run_lpv(scene, scene.settings, eng, 1)["passes"].items()}
     dc = ref["Diffuse Color"]
     leaf = dc[..., 1] - dc[..., 0] > 0.3  # the green surface's pixels (not the grey floor)
     assert leaf.mean() > 0.03

@@ -4,10 +4,11 @@ surfaces as Cycles' diffuse rays see it, not as the camera does; the user's Worl
 
 from __future__ import annotations
 
-import numpy as np
 import pytest
 
 bpy = pytest.importorskip("bpy")
+
+from conftest import factory_scene, lpv_and_cycles
 
 pytestmark = pytest.mark.bpy
 
@@ -22,10 +23,7 @@ def _camray_world(kind: str):
     only); the World is white for camera rays and a dim blue for all others: a Mix Shader of
     two Backgrounds (``kind`` "shader") or, "group", a Mix Color inside a node group feeding
     the Background's colour."""
-    bpy.ops.wm.read_factory_settings(use_empty=False)
-    sc = bpy.context.scene
-    sc.render.resolution_x, sc.render.resolution_y = RES
-    sc.render.resolution_percentage = 100
+    sc = factory_scene(RES)
     bpy.data.objects.remove(bpy.data.objects["Light"])
     bpy.ops.mesh.primitive_plane_add(size=10)
     tree = sc.world.node_tree
@@ -69,21 +67,11 @@ def _camray_world(kind: str):
 def test_camera_ray_trick_world_lights_as_cycles_diffuse_rays_see_it(tmp_path, kind):
     """LPV's Diffuse Direct mean within 5 % of Cycles' (the camera's white branch would make
     it ~8x); the camera-only branch is reported; the user's graph and groups are unchanged."""
-    import lpv_core as core
-    from lpv_addon.render import cycles
-    from lpv_addon.scene_io.extract import extract_scene
-    from tools import report
-
     sc, path = _camray_world(kind)
     worlds, groups = len(bpy.data.worlds), len(bpy.data.node_groups)
-    exr = tmp_path / "cycles.exr"
-    cycles.render_cycles_passes(str(exr), samples=32, resolution=RES)
-    ref = np.asarray(report._read_exr(str(exr))["Diffuse Direct"], np.float64)[..., :3]
-    scene = extract_scene(bpy.context.evaluated_depsgraph_get(), sc, RES)
+    ours, ref, scene = lpv_and_cycles(tmp_path, sc, RES, rgb=True)
+    ours, ref = ours["Diffuse Direct"], ref["Diffuse Direct"]
     assert any("Is Camera Ray 0" in line for line in scene.approximated)
-    eng = report._make_engine(core.render.raster.Rasterizer())
-    ours = np.asarray(report.run_lpv(scene, scene.settings, eng, 1)["passes"]["Diffuse Direct"],
-                      np.float64)[..., :3]
     print(f"\n{kind}: LPV Diffuse Direct {ours.mean():.4f}, Cycles {ref.mean():.4f}")
     assert ref.mean() > 0.01
     assert ours.mean() == pytest.approx(ref.mean(), rel=0.05)
