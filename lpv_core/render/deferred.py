@@ -181,24 +181,23 @@ def _render_samples(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats,
                 every = bool(recv.all())  # no masked copies of 1M points when all receive
                 at_r, nrm_r = (at, nrm) if every else (at[recv], nrm[recv])
                 turned = through[recv[through]] if through.size else through
+                far = np.zeros((turned.size, 3))  # the translucent share's, from the far side
                 for grid, values, vis in levels:  # inner cascades add theirs
                     e = backend.irradiance(
                         grid, values, lookup.sample_points(grid, at_r, nrm_r, lpv.gaps.get(grid)),
                         nrm_r, offset_cells=0.0, angular=scene.settings.angular, visibility=vis)
-                    if turned.size:  # the translucent share from the far side
-                        b = backend.irradiance(
-                            grid, values, lookup.sample_points(grid, at[turned], -nrm[turned],
-                                                               lpv.gaps.get(grid)),
-                            -nrm[turned], offset_cells=0.0, angular=scene.settings.angular,
-                            visibility=vis)
-                        full = np.zeros((pos.shape[0], 3))
-                        full[recv] = e
-                        full = _through(full, b, trans, turned)
-                        e = full if every else full[recv]
                     if every:
                         e_ind += e
                     else:
                         e_ind[recv] += e
+                    if turned.size:
+                        far += backend.irradiance(
+                            grid, values, lookup.sample_points(grid, at[turned], -nrm[turned],
+                                                               lpv.gaps.get(grid)),
+                            -nrm[turned], offset_cells=0.0, angular=scene.settings.angular,
+                            visibility=vis)
+                if turned.size:
+                    e_ind = _through(e_ind, far, trans, turned)
                 if areas.has_transition(scene.areas):
                     e_ind *= areas.transition_factor(scene.areas, pos)
                 diff_ind[mask] = e_ind / np.pi

@@ -361,14 +361,18 @@ class Scene:
             out = out * self.flag("caster")[:, None].astype(np.float32)
         return out
 
-    def alpha_per_triangle(self) -> np.ndarray | None:
-        """(T,) float32 coverage (Material.alpha, clipped to 0-1) per triangle; None when every
-        material is opaque."""
-        alphas = np.array([min(float(m.alpha), 1.0) for m in self.materials] or [1.0],
+    def _share_per_triangle(self, name: str, idle: float) -> np.ndarray | None:
+        """(T,) float32 of the materials' share ``name`` (0-1, at most 1) per triangle; None
+        when every material's is ``idle`` (nothing to do)."""
+        shares = np.array([min(float(getattr(m, name)), 1.0) for m in self.materials] or [idle],
                           np.float32)
-        if (alphas >= 1.0).all():
+        if (shares == idle).all():
             return None
-        return alphas[np.clip(self.material_index, 0, alphas.size - 1)]
+        return shares[np.clip(self.material_index, 0, shares.size - 1)]
+
+    def alpha_per_triangle(self) -> np.ndarray | None:
+        """(T,) float32 coverage (Material.alpha) per triangle; None when all are opaque."""
+        return self._share_per_triangle("alpha", 1.0)
 
     def alpha_maps(self) -> tuple[np.ndarray, list] | None:
         """(per-triangle layer (T,) int32, -1: none; the distinct Material.alpha_texture
@@ -388,13 +392,8 @@ class Scene:
         return layers[np.clip(self.material_index, 0, len(self.materials))], maps
 
     def translucency_per_triangle(self) -> np.ndarray | None:
-        """(T,) float32 Material.translucency (clipped to 0-1) per triangle; None when no
-        material has any."""
-        shares = np.array([min(float(m.translucency), 1.0) for m in self.materials] or [0.0],
-                          np.float32)
-        if not (shares > 0).any():
-            return None
-        return shares[np.clip(self.material_index, 0, shares.size - 1)]
+        """(T,) float32 Material.translucency per triangle; None when no material has any."""
+        return self._share_per_triangle("translucency", 0.0)
 
     def specular_per_triangle(self) -> np.ndarray | None:
         """Glossy reflectance x GI bleed intensity per triangle (T, 3), 0 for non-casters;
