@@ -42,6 +42,9 @@ COVERAGE_SAMPLES = _compiled.COVERAGE_SAMPLES
 SURFEL_SPACING = _compiled.SURFEL_SPACING
 
 
+MAX_SPLITS = 64  # sub-triangles along a triangle's edge at most (kernels' _splits_kernel too)
+
+
 def _subdivide(positions: np.ndarray, spacing: float):
     """Sub-triangles (N, 3, 3) of triangles (T, 3, 3), each at most ``spacing`` long (up to a
     64 x 64 split per triangle), and the triangle each came from (N,), its unit normal (N, 3)
@@ -76,7 +79,7 @@ def _splits(p: np.ndarray, spacing: float):
     normal = cross / np.where(area2 > 0, area2, 1.0)[:, None]
     longest = np.max(np.linalg.norm(np.stack([e1, e2, p[:, 2] - p[:, 1]], 1), axis=2), axis=1)
     # (an edge that is an exact multiple of the spacing must not get one more split by rounding)
-    k = np.clip(np.ceil(longest / max(spacing, 1e-30) - 1e-6), 1, 64).astype(np.int64)
+    k = np.clip(np.ceil(longest / max(spacing, 1e-30) - 1e-6), 1, MAX_SPLITS).astype(np.int64)
     return normal, area2, k
 
 

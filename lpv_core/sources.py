@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import emitters, mirror_lobe, propagation, sky
-from .geometry_volume import surfels
+from .geometry_volume import MAX_SPLITS, surfels
 from .scene import textures
 from .scene.model import HIDDEN_FROM_CAMERA
 
@@ -182,14 +182,48 @@ def cascade_surfels(positions: np.ndarray, chain: list):
     from .cascades import assign
 
     lo_t, hi_t = positions.min(axis=1), positions.max(axis=1)
+    longest = np.max(hi_t - lo_t, axis=1)
     parts = []
     for c, g in enumerate(chain):
         lo, hi = g.bounds()
         hit = np.nonzero(np.all((hi_t >= lo) & (lo_t <= hi), axis=1))[0]
-        pos, nrm, area, tri = surfels(positions[hit], g.cell_size, with_index=True)
+        # a triangle too long for cell-sized pieces (a 1 km ground) is cut to the box first
+        big = longest[hit] > MAX_SPLITS * g.cell_size
+        tris, index = positions[hit], hit
+        if big.any():
+            pieces = [clip_to_box(positions[t], lo, hi) for t in hit[big]]
+            tris = np.concatenate([positions[hit[~big]]] + pieces)
+            index = np.concatenate([hit[~big]] + [np.full(len(q), t) for q, t in
+                                                  zip(pieces, hit[big])]).astype(np.int64)
+        pos, nrm, area, tri = surfels(tris, g.cell_size, with_index=True)
+        tri = index[tri]
         own = assign(chain, pos) == c if len(chain) > 1 else slice(None)
-        parts.append((pos[own], nrm[own], area[own], hit[tri[own]]))
+        parts.append((pos[own], nrm[own], area[own], tri[own]))
     return tuple(np.concatenate(a) for a in zip(*parts))
+
+
+def clip_to_box(triangle: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """The part of ``triangle`` (3, 3) inside the box [lo, hi] as a fan of triangles (M, 3, 3),
+    M = 0 when none is (Sutherland-Hodgman against the six planes): same plane, same winding,
+    its area the area inside."""
+    poly = [np.asarray(v, np.float64) for v in triangle]
+    for axis in range(3):
+        for bound, sign in ((lo[axis], 1.0), (hi[axis], -1.0)):
+            out = []
+            for a, b in zip(poly, poly[1:] + poly[:1]):
+                da, db = sign * (a[axis] - bound), sign * (b[axis] - bound)
+                if da >= 0:
+                    out.append(a)
+                if (da >= 0) != (db >= 0):
+                    out.append(a + (b - a) * (da / (da - db)))
+            poly = out
+            if len(poly) < 3:
+                return np.zeros((0, 3, 3))
+    fan = np.array([[poly[0], poly[i], poly[i + 1]] for i in range(1, len(poly) - 1)])
+    # a corner on a plane repeats: keep the pieces with area (relative to the triangle's own)
+    cross = np.linalg.norm(np.cross(fan[:, 1] - fan[:, 0], fan[:, 2] - fan[:, 0]), axis=1)
+    own = np.linalg.norm(np.cross(triangle[1] - triangle[0], triangle[2] - triangle[0]))
+    return fan[cross > 1e-12 * own]
 
 
 def propagate(engine, scene, src: Source, run, bounds, stats) -> list:

@@ -536,3 +536,24 @@ def test_antialias_samples_take_turns_over_sets_of_sky_directions():
         assert abs(got.mean() / want.mean() - 1.0) < 0.05, aa
         errors.append(np.sqrt(((got - want) ** 2).mean()) / want.mean())
     assert errors[1] < 0.35 and errors[1] < 0.6 * errors[0], errors
+
+
+def test_a_huge_grounds_surfels_in_a_fine_cascade_are_a_cell_apart():
+    """A 1 km ground quad (2 triangles) under a 10 m cascade of 0.5 m cells: its surfels there
+    are at most a cell apart and add up to the ground's area inside the cascade, as on a small
+    ground. Subdivided whole (64 splits per edge at most), the pieces would be 22 m long: a
+    single surfel, or none, for the cascade's whole 100 m^2."""
+    from lpv_core.cascades import assign
+    from lpv_core.grid import Grid
+
+    ground = quad((-500, -500, 0), (500, -500, 0), (500, 500, 0), (-500, 500, 0))
+    chain = [Grid((-5.0, -5.0, -5.0), 0.5, 20), Grid((-520.0, -520.0, -520.0), 65.0, 16)]
+    pos, nrm, area, tri = sources.cascade_surfels(ground, chain)
+    fine = assign(chain, pos) == 0
+    # the finest cascade holds points a cell inside its box: [-4.5, 4.5]^2 on the ground
+    assert abs(area[fine].sum() - 81.0) <= 0.05 * 81.0, area[fine].sum()
+    assert area[fine].max() <= 0.5 * 0.5  # cell-sized pieces
+    assert np.allclose(np.abs(nrm[fine]), [0, 0, 1]) and set(tri[fine].tolist()) <= {0, 1}
+    # the coarse cascade's own surfels make up the rest, to within one of them (each cascade
+    # keeps the surfels whose centre it holds)
+    assert abs(area.sum() - 1e6) <= area.max(), (area.sum(), area.max())

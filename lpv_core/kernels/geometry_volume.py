@@ -1318,7 +1318,7 @@ def _splits_kernel(p, step, normal, area2, k):
             longest = max(longest, length)
         # (an edge that is an exact multiple of the spacing must not get one more split)
         split = np.ceil(longest / step - 1e-6) if not nan else math.nan
-        k[t] = 0 if math.isnan(split) else np.int64(min(max(split, 1.0), 64.0))
+        k[t] = 0 if math.isnan(split) else np.int64(min(max(split, 1.0), 64.0))  # MAX_SPLITS
 
 
 @jit.kernel
