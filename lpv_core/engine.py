@@ -228,7 +228,7 @@ class Engine:
                                                            scene.material_index),
                                hidden=scene.ray_hidden, alpha=scene.alpha_per_triangle(),
                                translucency=scene.translucency_per_triangle(),
-                               alpha_maps=_alpha_maps(scene))
+                               alpha_maps=_alpha_maps(scene), normal_maps=_normal_maps(scene))
             if self.raster.surface is not None and stats is not None:
                 stats.info["textures"] = self.raster.surface.info
 
@@ -937,6 +937,13 @@ def _alpha_maps(scene: Scene):
     """(layer, UVs, maps) of the scene's per-point coverage for Rasterizer.upload, or None."""
     maps = scene.alpha_maps()
     return None if maps is None else (maps[0], scene.uvs, maps[1])
+
+
+def _normal_maps(scene: Scene):
+    """(layer, Strength, UVs, tangents, maps) of the scene's normal maps for
+    Rasterizer.upload, or None."""
+    maps = scene.normal_maps()
+    return None if maps is None else (maps[0], maps[1], scene.uvs, scene.tangents, maps[2])
 
 
 def _inject(backend, grid: Grid, positions, normals, flux, visibility, sel=slice(None)):

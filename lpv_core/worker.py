@@ -58,13 +58,14 @@ def _as_json(obj) -> dict:
 
 
 TEXTURE_FOLDER = "textures"  # beside the scene file: one <digest>.npy per texture
+TEXTURE_KEYS = ("texture", "alpha_texture", "normal_texture")  # Material's images
 
 
 def _material_json(material: Material, folder: str) -> dict:
     """A material's fields as JSON, its texture by digest: the pixels go to ``folder`` as
     <digest>.npy, written only when that file is not there yet (each texture sent once)."""
-    out = _as_json(dataclasses.replace(material, texture=None, alpha_texture=None))
-    for key in ("texture", "alpha_texture"):
+    out = _as_json(dataclasses.replace(material, **dict.fromkeys(TEXTURE_KEYS)))
+    for key in TEXTURE_KEYS:
         tex = getattr(material, key)
         if tex is None:
             continue
@@ -128,7 +129,7 @@ def save_scene(path: str, scene: Scene) -> None:
         "material_index": scene.material_index,
     }
     for name in ("caster", "occluder", "receiver", "object_index", "uvs", "corner_colors",
-                 "ray_hidden"):
+                 "tangents", "ray_hidden"):
         value = getattr(scene, name)
         if value is not None:
             arrays[name] = np.asarray(value)
@@ -146,8 +147,7 @@ def save_scene(path: str, scene: Scene) -> None:
         "world": _world_json(scene.world, folder),
     }
     arrays["meta"] = np.array(json.dumps(meta))
-    used = {m[k]["digest"] for m in meta["materials"] for k in ("texture", "alpha_texture")
-            if m.get(k)}
+    used = {m[k]["digest"] for m in meta["materials"] for k in TEXTURE_KEYS if m.get(k)}
     used |= {meta["world"]["digest"]} if meta["world"] else set()
     if used:
         _prune_textures(folder, used)
@@ -174,7 +174,7 @@ def load_scene(path: str, held: dict | None = None) -> Scene:
     known = dict(held or {})
     materials = []
     for m in meta["materials"]:
-        texs = {key: m.pop(key, None) for key in ("texture", "alpha_texture")}
+        texs = {key: m.pop(key, None) for key in TEXTURE_KEYS}
         material = _dataclass(Material, m, {"albedo": np.float32, "bleed_color": np.float32,
                                             "emission": np.float32, "specular": np.float32,
                                             "diffuse_share": np.float32})
@@ -198,7 +198,7 @@ def load_scene(path: str, held: dict | None = None) -> Scene:
     if held is not None:
         held.clear()
         held.update({t.digest: t.pixels for m in materials
-                     for t in (m.texture, m.alpha_texture) if t is not None})
+                     for t in (getattr(m, k) for k in TEXTURE_KEYS) if t is not None})
         if world is not None:
             held[world.digest] = world.radiance
     lights = []
@@ -218,7 +218,7 @@ def load_scene(path: str, held: dict | None = None) -> Scene:
                                        if k in GISettings.__dataclass_fields__})
     opt = {k: (data[k] if k in data.files else None)
            for k in ("caster", "occluder", "receiver", "object_index", "uvs", "corner_colors",
-                     "ray_hidden")}
+                     "tangents", "ray_hidden")}
     return Scene(
         positions=data["positions"], normals=data["normals"],
         material_index=data["material_index"], materials=materials, lights=lights,

@@ -191,7 +191,9 @@ class _GeometryCollector:
             uv_maps = tuple(sorted({i.uv_map for i in infos if i.uv_map is not None}))
             colors = tuple(sorted({i.color_attribute for i in infos
                                    if i.color_attribute is not None}))
-        local = self._local_arrays(ob, uv_maps, colors)
+            tangent_maps = tuple(sorted({i.uv_map for i in infos if i.uv_map is not None
+                                         and i.material.normal_texture is not None}))
+        local = self._local_arrays(ob, uv_maps, colors, tangent_maps)
         if local is None or local[0].shape[0] == 0:
             count("objects_without_geometry")
             return
@@ -200,6 +202,7 @@ class _GeometryCollector:
             slot = np.minimum(slot_index, len(table) - 1)  # Blender clamps
             mat = np.take(table, slot)
             uvs, cols = self._corners(ob, infos, slot, layers, uv_maps, colors)
+            tans = self._tangents(ob, infos, slot, layers) if tangent_maps else None
         if _degenerate(matrix):
             count("objects_degenerate_transform")
             return
@@ -208,7 +211,7 @@ class _GeometryCollector:
             self.object_names.append(ob.name)
             self.object_flags.append(object_gi_flags(ob))
             self.object_hidden.append(object_ray_hidden(ob, self.view_layer))
-        self.chunks.append((pos, nrm, matrix, mat, oid, uvs, cols))
+        self.chunks.append((pos, nrm, matrix, mat, oid, uvs, cols, tans))
 
     def _corners(self, ob, infos, slot, layers, uv_maps, colors):
         """Per-corner UVs (T, 3, 2) (each slot's material's UV map and Mapping) and colours
@@ -245,14 +248,37 @@ class _GeometryCollector:
         self.defaulted["corner_colors"] += layers.get("defaulted", 0) if colors else 0
         return uvs, cols
 
+    def _tangents(self, ob, infos, slot, layers):
+        """Per-corner tangents (T, 3, 4) (tangent, bitangent sign) of each normal-mapped
+        slot's UV map, zeros elsewhere (the mesh's own normal there)."""
+        tans = np.zeros(slot.shape + (3, 4), np.float32)
+        for k, info in enumerate(infos):
+            if info.material.normal_texture is None or info.uv_map is None:
+                continue
+            sel = slot == k
+            if not sel.any():
+                continue
+            tan = layers.get(("tangent", info.uv_map))
+            note = layers.get(("tangent_note", info.uv_map))
+            if note is not None:
+                self._note(f"material '{info.material.name}' on object '{ob.name}': normal "
+                           f"map with {note}")
+            if tan is None:
+                why = layers.get(("tangent_error", info.uv_map), "its UV map is missing")
+                self._note(f"material '{info.material.name}' on object '{ob.name}': normal "
+                           f"map left out ({why})")
+            else:
+                tans[sel] = tan[sel]
+        return tans
+
     def _note(self, line: str) -> None:
         if line not in self.approximated:
             self.approximated.append(line)
 
-    def _local_arrays(self, ob, uv_maps=(), colors=()):
+    def _local_arrays(self, ob, uv_maps=(), colors=(), tangent_maps=()):
         key = ob.data.as_pointer() if ob.type == "MESH" and ob.data is not None else None
         if key is not None:
-            key = (key, uv_maps, colors)
+            key = (key, uv_maps, colors, tangent_maps)
         if key is not None and key in self.cache:
             return self.cache[key]
         with self.timer.phase("mesh_eval"):
@@ -263,7 +289,8 @@ class _GeometryCollector:
         try:
             layers: dict = {}
             arrays = None if mesh is None else mesh_arrays(
-                mesh, self.timer, uv_maps=uv_maps, color_attributes=colors, corners=layers)
+                mesh, self.timer, uv_maps=uv_maps, color_attributes=colors, corners=layers,
+                tangent_maps=tangent_maps)
             if arrays is not None:
                 arrays = (*arrays, layers)
         finally:
@@ -343,15 +370,22 @@ class _GeometryCollector:
                     arr = arr[:, [0, 2, 1]]
                 parts.append(arr)
             out[name] = np.concatenate(parts)
+        if any(c[7] is not None for c in self.chunks):
+            parts = []
+            for c in self.chunks:
+                parts.append(np.zeros((len(c[3]), 3, 4), np.float32) if c[7] is None
+                             else _tangents_to_world(c[7], c[2]))
+            out["tangents"] = np.concatenate(parts)
         return out
 
 
 def mesh_arrays(mesh: bpy.types.Mesh, timer: _Timer | None = None, *, uv_maps=(),
-                color_attributes=(), corners: dict | None = None):
+                color_attributes=(), corners: dict | None = None, tangent_maps=()):
     """Local (positions (T,3,3), corner normals (T,3,3), slot index (T,)) of a mesh; tri/quad
     meshes are split in numpy (the RNA ``loop_triangles`` read is slow: n-gons only).
     ``corners`` gets {("uv", name): (T,3,2), ("color", name): (T,3,3)} for the UV maps and
-    colour attributes named ("" the render one; missing ones left out)."""
+    colour attributes named ("" the render one; missing ones left out), and
+    {("tangent", name): (T,3,4)} for ``tangent_maps`` (tangent_layers)."""
     timer = timer or _Timer(None)
     with timer.phase("triangles"):
         mesh.calc_loop_triangles()
@@ -387,6 +421,9 @@ def mesh_arrays(mesh: bpy.types.Mesh, timer: _Timer | None = None, *, uv_maps=()
     if corners is not None and (uv_maps or color_attributes):
         with timer.phase("corners"):
             corners.update(corner_layers(mesh, loops, tri_verts, uv_maps, color_attributes))
+    if corners is not None and tangent_maps:
+        with timer.phase("corners"):
+            corners.update(tangent_layers(mesh, loops, tangent_maps, pos))
     with timer.phase("materials"):
         attr = mesh.attributes.get("material_index")
         if attr is not None and attr.domain == "FACE" and attr.data_type == "INT":
@@ -427,6 +464,71 @@ def corner_layers(mesh, loops: np.ndarray, tri_verts: np.ndarray, uv_maps, color
             out["defaulted"] = out.get("defaulted", 0) + int(bad.any(axis=1).sum())
             col = np.where(bad, 0.0, col)
         out[("color", name)] = np.take(col, index, axis=0)
+    return out
+
+
+def tangent_layers(mesh, loops: np.ndarray, uv_maps, pos: np.ndarray) -> dict:
+    """Per-triangle-corner (tangent, bitangent sign) (T, 3, 4) of the named UV maps ("" the
+    active render one), Blender's own MikkTSpace tangents (Mesh.calc_tangents, on the
+    evaluated copy), the ones Cycles' Normal Map node reads; a mesh with n-gons, which Blender
+    computes none for, gets each triangle's own (triangle_tangents), noted as
+    ("tangent_note", name); a missing UV map ("tangent_error", name)."""
+    out = {}
+    n_loop = len(mesh.loops)
+    for name in uv_maps:
+        layer = (next((u for u in mesh.uv_layers if u.active_render), None) if name == ""
+                 else mesh.uv_layers.get(name))
+        if layer is None:
+            out[("tangent_error", name)] = f"UV map '{name or 'render'}' is missing"
+            continue
+        try:
+            mesh.calc_tangents(uvmap=layer.name)
+        except RuntimeError:  # n-gons: Blender's tangents are for triangles and quads
+            uv = _read(layer.uv, "vector", 2 * n_loop, np.float32).reshape(-1, 2)
+            out[("tangent", name)] = triangle_tangents(pos, np.take(uv, loops, axis=0))
+            out[("tangent_note", name)] = ("faces of more than four corners: tangents from "
+                                           "each triangle's UVs, not Blender's")
+            continue
+        tan = _read(mesh.loops, "tangent", 3 * n_loop, np.float32).reshape(-1, 3)
+        sign = _read(mesh.loops, "bitangent_sign", n_loop, np.float32).reshape(-1, 1)
+        out[("tangent", name)] = np.take(np.hstack([tan, sign]), loops, axis=0)
+    return out
+
+
+def triangle_tangents(pos: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """(T, 3, 4) each triangle's own tangent dP/du (unit) and bitangent sign (+1 where dP/dv
+    turns as N x T, N the face normal) at its three corners; zeros where its UVs are
+    degenerate."""
+    p, t = np.asarray(pos, np.float64), np.asarray(uv, np.float64)
+    e1, e2 = p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]
+    d1, d2 = t[:, 1] - t[:, 0], t[:, 2] - t[:, 0]
+    det = d1[:, 0] * d2[:, 1] - d2[:, 0] * d1[:, 1]
+    ok = np.abs(det) > 1e-20
+    inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)[:, None]
+    tan = (e1 * d2[:, 1:2] - e2 * d1[:, 1:2]) * inv
+    bit = (e2 * d1[:, 0:1] - e1 * d2[:, 0:1]) * inv
+    length = np.linalg.norm(tan, axis=1, keepdims=True)
+    tan = np.where(length > 0, tan / np.where(length > 0, length, 1.0), 0.0)
+    sign = np.where(np.einsum("ij,ij->i", np.cross(np.cross(e1, e2), tan), bit) < 0, -1.0, 1.0)
+    out = np.zeros((p.shape[0], 3, 4), np.float32)
+    out[..., :3] = tan[:, None, :]
+    out[..., 3] = np.where(ok, sign, 0.0)[:, None]
+    return out
+
+
+def _tangents_to_world(tans: np.ndarray, matrix: np.ndarray) -> np.ndarray:
+    """Local (T, 3, 4) tangents in world space: the tangent by the matrix (a surface
+    direction; make it unit), the sign flipped by a mirror, corners swapped as the positions'."""
+    m3 = np.asarray(matrix, np.float64)[:3, :3]
+    if not np.isfinite(m3).all():
+        return np.zeros_like(tans)
+    out = tans.astype(np.float32).copy()
+    t = tans[..., :3].reshape(-1, 3).astype(np.float64) @ m3.T
+    length = np.linalg.norm(t, axis=1, keepdims=True)
+    out[..., :3] = (t / np.where(length > 0, length, 1.0)).reshape(tans.shape[:2] + (3,))
+    if np.linalg.det(m3) < 0:
+        out[..., 3] = -out[..., 3]
+        out = out[:, [0, 2, 1]]
     return out
 
 

@@ -835,10 +835,15 @@ def material_info(mat) -> MaterialInfo:
             m.albedo, m.emission, m.specular = (a * scale for a in (m.albedo, m.emission,
                                                                     m.specular))
             alpha_uv = alpha_map(ev, surface, m, diffuse.uv or ev.uv)
+    normal_uv = None
+    if output is not None:
+        normal_uv = normal_map(ev, tree, surface, m, diffuse.uv or ev.uv or alpha_uv)
     info = MaterialInfo(m, color_attribute=diffuse.attr, notes=ev.notes,
                         defaulted_texels=ev.defaulted, holdout=holdout)
     if alpha_uv is not None and diffuse.pixels is None:  # the alpha image's UV map alone
         info.uv_map, info.uv_transform = alpha_uv
+    elif normal_uv is not None and diffuse.pixels is None:  # the normal map's alone
+        info.uv_map, info.uv_transform = normal_uv
     if diffuse.pixels is not None:
         node = diffuse.node
         m.texture = core.scene.Texture(
@@ -896,6 +901,53 @@ def alpha_map(ev, surface, m, uv) -> tuple | None:
         digest)
     m.alpha = 1.0
     ev.notes[:] = [n for n in ev.notes if "driven by the alpha of image" not in n]
+    return source
+
+
+def normal_map(ev, tree, surface, m, uv) -> tuple | None:
+    """A tangent-space Normal Map node on the surface BSDF's Normal input, its Color an image
+    read through a UV map, becomes the material's normal_texture and normal_strength (the
+    G-buffer's normal per point) when that UV map is the node's own and the one the material's
+    other images read (or they have none); returns the UV source. Any other normal input (a
+    Bump, another space, a second UV map) is named and left out: the mesh's normals stay."""
+    def left_out(what: str) -> None:
+        ev.note(f"{what}: left out, the mesh's normals are used")
+
+    node, _, stack = ev.resolve(surface)
+    src = None
+    if node is not None and "Normal" in node.inputs:
+        src, _, st = ev.resolve(node.inputs["Normal"], stack)
+    if src is None:
+        used = [n for n in tree.nodes if n.bl_idname in ("ShaderNodeNormalMap", "ShaderNodeBump")
+                and any(o.is_linked for o in n.outputs)]
+        if used:
+            left_out(f"'{used[0].name}' ({used[0].bl_idname.removeprefix('ShaderNode')}) "
+                     "does not feed the surface BSDF's Normal")
+        return None
+    if src.bl_idname != "ShaderNodeNormalMap":
+        left_out(f"Normal from '{src.name}' ({src.bl_idname.removeprefix('ShaderNode')})")
+        return None
+    if src.space != "TANGENT":
+        left_out(f"Normal Map '{src.name}' in {src.space.title()} space")
+        return None
+    image, out, ist = ev.resolve(src.inputs["Color"], st)
+    if (image is None or image.bl_idname != "ShaderNodeTexImage" or image.image is None
+            or out.name != "Color"):
+        left_out(f"Normal Map '{src.name}' whose Color is not an image's Color")
+        return None
+    source = ev.uv_source(image, ist)
+    if (source is None or (uv is not None and not _same_uv(source, uv))
+            or (src.uv_map or "") != source[0]):
+        left_out(f"Normal Map '{src.name}' with image '{image.image.name}' read through "
+                 "another UV map or projection than its tangents' or the material's colour")
+        return None
+    digest, pixels, _ = image_pixels(image.image)
+    if pixels is None:
+        left_out(f"Normal Map '{src.name}': image '{image.image.name}' has no pixels")
+        return None
+    m.normal_texture = core.scene.textures.Texture(
+        image.image.name, pixels, image.interpolation, image.extension, digest)
+    m.normal_strength = max(ev.value(src.inputs["Strength"], st), 0.0)
     return source
 
 

@@ -44,6 +44,26 @@ bool hashed_out() {
 }
 """
 
+# A tangent-space normal map, as Cycles' Normal Map node: the texel t in 0-1 read as
+# 2 t - 1 along (T, B, N), B = sign x cross(N, T) (T made perpendicular to the interpolated
+# normal N), then moved from N by Strength; the side facing the viewer is taken after it, as
+# Cycles flips the mapped normal of a back face.
+NORMAL_MAP = """
+uniform sampler2DArray normal_maps;
+in vec4 v_tan;
+flat in vec2 v_nmap;  // layer (-1: none), Strength
+vec3 mapped(vec3 n) {
+    vec3 t = v_tan.xyz - n * dot(n, v_tan.xyz);
+    if (v_nmap.x < 0.0 || dot(t, t) < 1e-12) return n;
+    t = normalize(t);
+    vec3 c = 2.0 * texture(normal_maps, vec3(fract(v_uv), v_nmap.x)).rgb - 1.0;
+    vec3 m = c.x * t + c.y * (v_tan.w < 0.0 ? -1.0 : 1.0) * cross(n, t) + c.z * n;
+    if (dot(m, m) < 1e-12) return n;
+    m = n + (normalize(m) - n) * v_nmap.y;
+    return dot(m, m) < 1e-12 ? n : normalize(m);
+}
+"""
+
 # A triangle's in_recv: bit 0 receives GI, bits 1-3 its ray visibility (scene.model:
 # HIDDEN_FROM_CAMERA, CASTS_NO_SHADOW, HOLDOUT, shifted up by one). A pass leaves out the
 # triangles whose bits meet its ``hide`` mask: all three corners outside the clip volume.
@@ -60,6 +80,8 @@ in float in_alpha;
 in float in_trans;
 in vec2 in_uv;
 in float in_layer;
+in vec4 in_tan;
+in vec2 in_nmap;
 out vec3 v_pos;
 out vec3 v_nrm;
 out vec3 v_alb;
@@ -69,7 +91,11 @@ flat out float v_alpha;
 flat out float v_trans;
 flat out float v_layer;
 out vec2 v_uv;
+out vec4 v_tan;
+flat out vec2 v_nmap;
 void main() {
+    v_tan = in_tan;
+    v_nmap = in_nmap;
     v_alpha = in_alpha;
     v_layer = in_layer;
     v_uv = in_uv;
@@ -101,11 +127,12 @@ layout(location = 0) out vec4 o_pos;
 layout(location = 1) out vec4 o_nrm;
 layout(location = 2) out vec4 o_alb;
 layout(location = 3) out vec4 o_refl;
+""" + NORMAL_MAP + """
 void main() {
     if (hashed_out()) discard;
     vec3 n = normalize(v_nrm);
     vec3 to_eye = ortho == 1 ? -view_dir : eye - v_pos;
-    if (dot(n, to_eye) < 0.0) n = -n;
+    n = dot(n, to_eye) < 0.0 ? -mapped(n) : mapped(n);
     o_pos = vec4(v_pos - origin, 1.0);
     // w: the translucency (0-1), or 2 for a holdout (Object.is_holdout)
     o_nrm = vec4(n, ((v_code >> 3) & 1) != 0 ? 2.0 : v_trans);
@@ -166,6 +193,15 @@ void main() {
 """
 ALPHA_MAP_SIDE = 256  # texels a side of each alpha map in the coverage's texture array
 ALPHA_MAP_UNIT = 1  # its texture unit
+NORMAL_MAP_SIDE = 1024  # texels a side of each normal map, at most (its own size below)
+NORMAL_MAP_UNIT = 2
+# The vertex buffer: pos, nrm, alb, refl (3 each), recv, alpha, trans, uv (2), layer, tangent
+# (4), normal map (layer, Strength); each pass reads its part (moderngl layouts)
+VERTEX_FLOATS = 24
+MAIN_LAYOUT = ("3f 3f 3f 3f 1f 1f 1f 2f 1f 4f 2f", "in_pos", "in_nrm", "in_alb", "in_refl",
+               "in_recv", "in_alpha", "in_trans", "in_uv", "in_layer", "in_tan", "in_nmap")
+RSM_LAYOUT = ("3f 3f 24x 1f 1f 4x 2f 1f 24x", "in_pos", "in_nrm", "in_recv", "in_alpha",
+              "in_uv", "in_layer")
 
 
 def _resampled(a: np.ndarray, side: int) -> np.ndarray:
@@ -294,6 +330,7 @@ class Rasterizer:
         self._vao = None
         self._rsm_vao = None
         self._alpha_maps = None  # the coverage's texture array (_upload_alpha_maps)
+        self._normal_maps = None  # the normal maps' texture array (_upload_normal_maps)
         self._vbo = None
         self._key = None
         self._fbos: dict = {}
@@ -315,7 +352,7 @@ class Rasterizer:
     def upload(self, positions, normals, albedo, reflectance, key=None, receiver=None,
                origin=None, surface: textures.Layout | None = None, specular=None,
                shares: tuple | None = None, hidden=None, alpha=None,
-               translucency=None, alpha_maps=None) -> None:
+               translucency=None, alpha_maps=None, normal_maps=None) -> None:
         """Upload (T,3,3) corners and normals with (T,3) per-triangle colours and an optional
         (T,) receiver flag (default: every triangle receives GI). Positions are kept relative
         to ``origin`` (default: the centre of the vertices' bounds) for float32 precision.
@@ -327,7 +364,9 @@ class Rasterizer:
         ``alpha`` (T,) coverage (Scene.alpha_per_triangle; None: opaque), hashed per pass;
         ``translucency`` (T,) (Scene.translucency_per_triangle; None: none);
         ``alpha_maps`` ((T,) layer, (T, 3, 2) UVs, maps) the coverage per point
-        (Scene.alpha_maps and Scene.uvs; None: none)."""
+        (Scene.alpha_maps and Scene.uvs; None: none); ``normal_maps`` ((T,) layer, (T,)
+        Strength, (T, 3, 2) UVs, (T, 3, 4) tangents, maps) the G-buffer's normal per point
+        (Scene.normal_maps, Scene.uvs and Scene.tangents; None: none)."""
         if key is not None and key == self._key:
             return
         self.surface = None if surface is None else textures.Surface(surface,
@@ -343,7 +382,7 @@ class Rasterizer:
                 else np.zeros(3)
             )
         rel = (pos - self.origin).astype(np.float32)
-        data = np.empty((t, 3, 18), np.float32)
+        data = np.empty((t, 3, VERTEX_FLOATS), np.float32)
         data[..., 0:3] = rel
         data[..., 3:6] = np.asarray(normals, np.float32).reshape(-1, 3, 3)
         data[..., 6:9] = np.asarray(albedo, np.float32).reshape(-1, 1, 3)
@@ -356,18 +395,17 @@ class Rasterizer:
             translucency, np.float32).reshape(-1, 1)
         data[..., 15:17] = 0.0
         data[..., 17] = -1.0
+        data[..., 18:22] = 0.0
+        data[..., 22] = -1.0
+        data[..., 23] = 0.0
         self._upload_alpha_maps(alpha_maps, data)
+        self._upload_normal_maps(normal_maps, data)
         self.release_geometry()
         if t:
             self._vbo = self.ctx.buffer(data.tobytes())
-            self._vao = self.ctx.vertex_array(
-                self.program,
-                [(self._vbo, "3f 3f 3f 3f 1f 1f 1f 2f 1f", "in_pos", "in_nrm", "in_alb",
-                  "in_refl", "in_recv", "in_alpha", "in_trans", "in_uv", "in_layer")],
-            )
-            self._rsm_vao = self.ctx.vertex_array(
-                self.rsm_program, [(self._vbo, "3f 3f 24x 1f 1f 4x 2f 1f", "in_pos",
-                                   "in_nrm", "in_recv", "in_alpha", "in_uv", "in_layer")])
+            self._vao = self.ctx.vertex_array(self.program, [(self._vbo, *MAIN_LAYOUT)])
+            self._rsm_vao = self.ctx.vertex_array(self.rsm_program,
+                                                  [(self._vbo, *RSM_LAYOUT)])
         self.reflectance = np.ascontiguousarray(data[:, 0, 9:12])
         if specular is not None:
             self.specular = np.asarray(specular, np.float32).reshape(t, 3)
@@ -401,18 +439,38 @@ class Rasterizer:
         data[..., 15:17] = np.asarray(uvs, np.float32).reshape(-1, 3, 2)
         data[..., 17] = np.asarray(layer, np.float32).reshape(-1, 1)
 
+    def _upload_normal_maps(self, normal_maps, data: np.ndarray) -> None:
+        """The normal maps as one texture array (layers of their largest side, at most
+        NORMAL_MAP_SIDE, bilinear), their layer, Strength, UVs and tangents into the vertex
+        ``data``; none: the array released."""
+        if self._normal_maps is not None:
+            self._normal_maps.release()
+            self._normal_maps = None
+        if normal_maps is None:
+            return
+        layer, strength, uvs, tangents, maps = normal_maps
+        side = min(NORMAL_MAP_SIDE, max(max(m.shape[:2]) for m in maps))
+        stack = np.stack([np.stack([_resampled(np.asarray(m, np.float32)[..., c], side)
+                                    for c in range(3)], axis=-1) for m in maps])
+        self._normal_maps = self.ctx.texture_array((side, side, len(maps)), 3,
+                                                   np.ascontiguousarray(stack).tobytes(),
+                                                   dtype="f4")
+        import moderngl
+
+        self._normal_maps.filter = (moderngl.LINEAR, moderngl.LINEAR)
+        data[..., 15:17] = np.asarray(uvs, np.float32).reshape(-1, 3, 2)
+        data[..., 18:22] = np.asarray(tangents, np.float32).reshape(-1, 3, 4)
+        data[..., 22] = np.asarray(layer, np.float32).reshape(-1, 1)
+        data[..., 23] = np.asarray(strength, np.float32).reshape(-1, 1)
+
     def _programs(self) -> dict:
         """The textured passes' programs and vertex layouts, compiled on first use."""
         if "gbuffer" not in self._textured:
             for name, (vs, fs) in (("gbuffer", TEXTURED_SHADERS),
                                    ("rsm", TEXTURED_RSM_SHADERS)):
                 self._textured[name] = self.ctx.program(vertex_shader=vs, fragment_shader=fs)
-        return {"gbuffer": (self._textured["gbuffer"], ("3f 3f 3f 3f 1f 1f 1f 2f 1f", "in_pos",
-                                                        "in_nrm", "in_alb", "in_refl",
-                                                        "in_recv", "in_alpha", "in_trans",
-                                                        "in_uv", "in_layer")),
-                "rsm": (self._textured["rsm"], ("3f 3f 24x 1f 1f 4x 2f 1f", "in_pos", "in_nrm",
-                                                "in_recv", "in_alpha", "in_uv", "in_layer"))}
+        return {"gbuffer": (self._textured["gbuffer"], MAIN_LAYOUT),
+                "rsm": (self._textured["rsm"], RSM_LAYOUT)}
 
     def release_geometry(self) -> None:
         vaos = [self._textured.pop(k) for k in ("gbuffer_vao", "rsm_vao") if k in self._textured]
@@ -466,6 +524,10 @@ class Rasterizer:
             self._alpha_maps.use(location=ALPHA_MAP_UNIT)
             if "alpha_maps" in program:
                 program["alpha_maps"].value = ALPHA_MAP_UNIT
+        if self._normal_maps is not None:
+            self._normal_maps.use(location=NORMAL_MAP_UNIT)
+            if "normal_maps" in program:
+                program["normal_maps"].value = NORMAL_MAP_UNIT
         program["seed"].value, program["samples"].value = (int(v) for v in seed)
         vao.render()
 
@@ -659,6 +721,10 @@ class Rasterizer:
 
     def release(self) -> None:
         self.release_geometry()
+        for maps in (self._alpha_maps, self._normal_maps):
+            if maps is not None:
+                maps.release()
+        self._alpha_maps = self._normal_maps = None
         for fbo in self._fbos.values():
             for att in fbo.color_attachments:
                 att.release()

@@ -52,6 +52,11 @@ class Material:
     # Share of the Diffuse Color that is a Translucent BSDF's: its light comes through the
     # surface from the far side (the side away from the viewer), not from the near side
     translucency: float = 0.0
+    # A tangent-space normal map (a Normal Map node's Color: pixels (H, W, 3) in 0-1, rows
+    # bottom-first) read through the material's UV map (Scene.uvs, Scene.tangents), and its
+    # Strength; None: the mesh's own normals
+    normal_texture: Texture | None = None
+    normal_strength: float = 1.0
 
     def gi_reflectance(self) -> np.ndarray:
         """Reflectance used for injected (bounced) flux: bleed colour x intensity, else albedo."""
@@ -318,6 +323,10 @@ class Scene:
     # and colours (T, 3, 3) float32 multiplying the albedo (Color Attribute); None: none.
     uvs: np.ndarray | None = None
     corner_colors: np.ndarray | None = None
+    # Per-corner tangents (T, 3, 4) float32 of that UV map, world space: unit tangent and the
+    # bitangent's sign (MikkTSpace, as Blender computes them), for Material.normal_texture;
+    # None: none
+    tangents: np.ndarray | None = None
     world: World | None = None
     # What the extraction or make_scene approximated, one line each naming the object or
     # material and what was done (an unsupported shader, a missing image...): the stats and
@@ -391,6 +400,27 @@ class Scene:
                 layers[i] = seen[key]
         return layers[np.clip(self.material_index, 0, len(self.materials))], maps
 
+    def normal_maps(self) -> tuple[np.ndarray, np.ndarray, list] | None:
+        """(per-triangle layer (T,) int32, -1: none; Strength (T,) float32; the distinct
+        Material.normal_texture pixels, one per layer) for the G-buffer's per-point normal;
+        None without any (or without texture coordinates and tangents)."""
+        if (self.uvs is None or self.tangents is None
+                or not any(m.normal_texture is not None for m in self.materials)):
+            return None
+        n = len(self.materials)
+        layers, strength = np.full(n + 1, -1, np.int32), np.zeros(n + 1, np.float32)
+        maps, seen = [], {}
+        for i, m in enumerate(self.materials):
+            tex = m.normal_texture
+            if tex is not None:
+                key = tex.digest or id(tex.pixels)
+                if key not in seen:
+                    seen[key] = len(maps)
+                    maps.append(tex.pixels)
+                layers[i], strength[i] = seen[key], max(float(m.normal_strength), 0.0)
+        index = np.clip(self.material_index, 0, n)
+        return layers[index], strength[index], maps
+
     def translucency_per_triangle(self) -> np.ndarray | None:
         """(T,) float32 Material.translucency per triangle; None when no material has any."""
         return self._share_per_triangle("translucency", 0.0)
@@ -437,6 +467,7 @@ def make_scene(
     corner_colors=None,
     world=None,
     ray_hidden=None,
+    tangents=None,
 ) -> Scene:
     """Build a validated Scene from loose arrays: bad triangles are dropped and counted.
 
@@ -497,9 +528,12 @@ def make_scene(
             raise ValueError(f"ray_hidden has shape {arr.shape}, expected ({t},)")
         flags["ray_hidden"] = np.ascontiguousarray(arr[keep]) if arr.any() else None
     corners = {}
-    for cname, cvalue, width in (("uvs", uvs, 2), ("corner_colors", corner_colors, 3)):
+    for cname, cvalue, width in (("uvs", uvs, 2), ("corner_colors", corner_colors, 3),
+                                 ("tangents", tangents, 4)):
         if cvalue is not None:
             arr = np.asarray(cvalue, np.float32).reshape(-1, 3, width)
+            if cname == "tangents":  # a non-finite tangent: none there (the mesh's normal)
+                arr = np.where(np.isfinite(arr), arr, np.float32(0.0))
             if arr.shape[0] != t:
                 raise ValueError(f"{cname} describe {arr.shape[0]} triangles, positions {t}")
             corners[cname] = np.ascontiguousarray(arr[keep])
@@ -528,7 +562,7 @@ _LIGHT_LOWS = {"color": 0.0, "gi_color": 0.0, "gi_intensity": None, "spot_size":
                "spot_blend": 0.0, "radius": 0.0, "size": 0.0, "spread": 0.0, "angle": 0.0}
 _MATERIAL_LOWS = {"albedo": 0.0, "bleed_color": 0.0, "bleed_intensity": 0.0, "emission": 0.0,
                   "emission_gi_intensity": None, "diffuse_share": 0.0, "specular": 0.0,
-                  "alpha": 0.0, "translucency": 0.0}
+                  "alpha": 0.0, "translucency": 0.0, "normal_strength": 0.0}
 _AREA_LOWS = {"falloff": 0.0, "intensity": 0.0, "tint": 0.0}
 
 
