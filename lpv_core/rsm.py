@@ -100,9 +100,11 @@ def view_vpls(light: Light, view: lights_mod.LightView, p4, n4, reflectance, ori
     refl = table[:, :3]
     position = p4[rows, cols, :3].astype(np.float64) + origin
     normal = n4[rows, cols, :3].astype(np.float64)
+    gain = np.linalg.norm(normal, axis=1)  # the shading normal's (RSM_FRAGMENT_SHADER)
+    normal /= np.where(gain > 0, gain, 1.0)[:, None]
     incident, surf_area = texel_flux(light, view, rows, cols, size, position, normal)
     color = np.asarray(light.color, np.float64)
-    phi = incident[:, None] * refl * color
+    phi = (incident * gain)[:, None] * refl * color
     keep = (phi.max(axis=-1) > 0) & np.isfinite(phi).all(axis=-1)
     out = position[keep], normal[keep], phi[keep], surf_area[keep]
     if table.shape[1] == 3:

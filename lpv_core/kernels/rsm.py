@@ -146,6 +146,9 @@ def _vpl_kernel(p4, n4, reflectance, origin, ortho, tan_half, half_extent, right
             nx = np.float64(n4[row, col, 0])
             ny = np.float64(n4[row, col, 1])
             nz = np.float64(n4[row, col, 2])
+            gain = np.sqrt(nx * nx + ny * ny + nz * nz)  # the shading normal's
+            if gain > 0:
+                nx, ny, nz = nx / gain, ny / gain, nz / gain
             ix, iy, iz = ax, ay, az  # the incident direction (a sun's axis)
             if ortho:
                 incident = power * texel_area
@@ -196,9 +199,9 @@ def _vpl_kernel(p4, n4, reflectance, origin, ortho, tan_half, half_extent, right
                     mlift[k, 2] = nz - mnrm[k, 2]
                     marea[k] = a
                     k += 1
-            f0 = incident * r0 * color[0]
-            f1 = incident * r1 * color[1]
-            f2 = incident * r2 * color[2]
+            f0 = incident * gain * r0 * color[0]
+            f1 = incident * gain * r1 * color[1]
+            f2 = incident * gain * r2 * color[2]
             if not max(f0, max(f1, f2)) > 0:
                 continue
             if not (np.isfinite(f0) and np.isfinite(f1) and np.isfinite(f2)):

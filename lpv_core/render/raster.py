@@ -142,7 +142,8 @@ void main() {
 """
 
 
-# The reflective shadow map's own pass: position and normal only, and the triangle's index
+# The reflective shadow map's own pass: position and the geometric normal (its length the
+# shading normal's gain on the reflected light, at most 20: the surfel area's 1 / 0.05 cap), and the triangle's index
 # (gl_PrimitiveID, split into two exactly representable floats) instead of a reflectance target:
 # two targets instead of four. Position and normal are the main pass's expressions (the same bits); the reflectance comes from the
 # uploaded per-triangle table (the main pass's target interpolates it: 0.8 reads 0.79999995).
@@ -174,6 +175,7 @@ void main() {
 
 RSM_FRAGMENT_SHADER = """
 #version 330
+#define SHADING_GAIN_MAX 20.0
 """ + HASHED_ALPHA + """
 uniform vec3 eye;
 uniform vec3 view_dir;
@@ -184,11 +186,22 @@ layout(location = 0) out vec4 o_pos;  // w: 1 + triangle index / 2^24 (coverage:
 layout(location = 1) out vec4 o_nrm;  // w: triangle index % 2^24
 void main() {
     if (hashed_out()) discard;
-    vec3 n = normalize(v_nrm);
-    vec3 to_eye = ortho == 1 ? -view_dir : eye - v_pos;
+    vec3 s = normalize(v_nrm);
+    vec3 n = cross(dFdx(v_pos), dFdy(v_pos));
+    n = dot(n, n) > 0.0 ? normalize(n) : s;
+    vec3 to_eye = normalize(ortho == 1 ? -view_dir : eye - v_pos);
     if (dot(n, to_eye) < 0.0) n = -n;
+    // the shading normal on the lit side: the geometric normal's, or where it lies in the
+    // surface's plane (custom normals), the side the triangle's winding faces (Cycles flips it
+    // with the face)
+    float side = dot(s, n);
+    if (abs(side) < 1e-3 ? !gl_FrontFacing : side < 0.0) s = -s;
+    // the light a diffuse surface reflects goes by its shading normal's cosine and leaves
+    // around its geometric normal (Cycles): the normal out is the geometric one, its length
+    // the reflected share over the geometric cosine (1 where they are one)
+    float f = max(dot(s, to_eye), 0.0) / max(dot(n, to_eye), 1e-9);
     o_pos = vec4(v_pos, float(1 + (gl_PrimitiveID >> 24)));
-    o_nrm = vec4(n, float(gl_PrimitiveID & 0xFFFFFF));
+    o_nrm = vec4(n * min(f, SHADING_GAIN_MAX), float(gl_PrimitiveID & 0xFFFFFF));
 }
 """
 ALPHA_MAP_SIDE = 256  # texels a side of each alpha map in the coverage's texture array
