@@ -328,6 +328,15 @@ class _GeometryCollector:
         for i, name in enumerate(("caster", "occluder", "receiver")):
             if not table[:, i].all():
                 out[name] = table[object_index, i] if object_index.size else None
+        # a surface of no coverage (a volume's, Alpha 0) neither bounces nor blocks light
+        clear = np.array([i.material.alpha <= 0 for i in self.infos] or [False], bool)
+        if clear.any() and object_index.size:
+            gone = clear[np.clip(material_index, 0, clear.size - 1)]
+            for name in ("caster", "occluder"):
+                arr = out.get(name)
+                arr = np.ones(object_index.size, bool) if arr is None else arr.copy()
+                arr[gone] = False
+                out[name] = arr
         hidden = np.array(self.object_hidden or [0], np.uint8)
         held = np.array([i.holdout for i in self.infos] or [False], bool)
         if (hidden.any() or held.any()) and object_index.size:

@@ -838,6 +838,14 @@ def material_info(mat) -> MaterialInfo:
     normal_uv = None
     if output is not None:
         normal_uv = normal_map(ev, tree, surface, m, diffuse.uv or ev.uv or alpha_uv)
+        volume = output.inputs.get("Volume")
+        inside = ev.resolve(volume)[0] if volume is not None else None
+        if inside is not None and (surface is None or ev.resolve(surface)[0] is None):
+            # a volume without a surface shader (a fog box): Cycles' rays pass its surface
+            m.alpha, m.albedo, m.emission, m.specular = (0.0, *(np.zeros(3, np.float32)
+                                                                for _ in range(3)))
+            ev.note(f"a volume only ('{inside.name}'): its surface is transparent, as in "
+                    "Cycles; the volume's scattering, absorption and emission are left out")
     info = MaterialInfo(m, color_attribute=diffuse.attr, notes=ev.notes,
                         defaulted_texels=ev.defaulted, holdout=holdout)
     if alpha_uv is not None and diffuse.pixels is None:  # the alpha image's UV map alone
