@@ -76,7 +76,7 @@ def clusters(scene: Scene, diagonal: float) -> list[Cluster]:
         order = tri[np.argsort(cen[:, axis], kind="stable")]
         half = order.size // 2
         groups += [(mi, o, np.sort(order[:half])), (mi, o, np.sort(order[half:]))]
-    out = []
+    out, sides = [], {}
     for n, (mi, o, tri) in enumerate(groups):
         corners = scene.positions[tri].astype(np.float64)
         area = 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0],
@@ -91,8 +91,32 @@ def clusters(scene: Scene, diagonal: float) -> list[Cluster]:
         normal = vec / size if size > 0.5 * 2 * area.sum() else None  # a flat-ish cluster
         out.append(Cluster(name, mi, tri, corners,
                            np.asarray(scene.materials[mi].emission, np.float64), centre, radius,
+                           side=sides.setdefault(o, outward_side(scene, obj == o)),
                            normal=normal))
     return out
+
+
+def outward_side(scene: Scene, mask: np.ndarray) -> int:
+    """+1 / -1 when the triangles ``mask`` selects (an object's) close a volume, consistently
+    wound, with their winding normals pointing out / in; 0 otherwise. Light a closed emitter
+    sends from the inner side of its faces stays inside it (Cycles' two-sided emission meets
+    the object's own faces), where its own shadow map, rendered without the emitters, would
+    let it through: such an emitter emits from its outer side only."""
+    p = np.asarray(scene.positions, np.float64)[mask]
+    if p.shape[0] < 4:
+        return 0
+    _, vid = np.unique(p.reshape(-1, 3), axis=0, return_inverse=True)
+    vid = vid.reshape(-1, 3).astype(np.int64)
+    n = int(vid.max()) + 1
+    a, b = vid, np.roll(vid, -1, axis=1)  # each triangle's directed edges a -> b
+    edges = (a * n + b).ravel()
+    reverse = (b * n + a).ravel()
+    if np.unique(edges).size != edges.size:  # an edge used twice in one direction
+        return 0
+    if not np.isin(reverse, edges, assume_unique=True).all():  # an open or mis-wound edge
+        return 0
+    volume = float(np.einsum("ij,ij->i", p[:, 0], np.cross(p[:, 1], p[:, 2])).sum())
+    return 1 if volume > 0 else -1 if volume < 0 else 0
 
 
 CAPPED_SHARE = 0.9  # of a side's cosine-weighted view closed within the cluster's radius

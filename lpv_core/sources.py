@@ -134,15 +134,15 @@ def maps(engine, scene, bounds, stats, k: int | None = None,
             made = [(c, direct.render_shadow_map(raster, c.light(), (lo, hi),
                                                  emitters.SHADOW_RESOLUTION)) for c in found]
             engine.upload(scene, stats)  # the whole scene back for the other passes
-            for c, shadow in made:
-                c.side = emitters.capped_side(c, shadow)
+            for c, shadow in made:  # a closed emitter's outer side, else an uncapped one
+                c.side = c.side or emitters.capped_side(c, shadow)
             sm.clusters = (digest, made)
         for c, _ in sm.clusters[1]:
             info[f"emission {c.name}"] = (
                 f"{c.triangles.size} triangles, exact unoccluded form factors; visibility "
                 f"from the cluster's centre ({emitters.SHADOW_RESOLUTION}^2 cube map, "
                 f"{c.radius:.3g} m source)" + ("" if not c.side else
-                                                  "; one side capped: emits from the other"))
+                                                  "; emits from one side: a closed object's outer one, or the one not capped"))
     stats.add_ms("source_maps", time.perf_counter() - t0)
     return sm
 
