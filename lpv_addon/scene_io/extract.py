@@ -101,6 +101,13 @@ def extract_scene(
         if kind == "LIGHT":
             if not getattr(ob, "visible_diffuse", True):
                 continue  # Cycles: a light diffuse rays do not see lights no diffuse surface
+            cycles = getattr(ob.data, "cycles", None)
+            if ob.data.type == "AREA" and getattr(cycles, "is_portal", False):
+                note = (f"light '{ob.name}': a Cycles portal (it guides the World's light "
+                        "through an opening and emits none): left out")
+                if note not in light_notes:
+                    light_notes.append(note)
+                continue
             with timer.phase("lights"):
                 light = light_from_object(ob, matrix, light_notes)
                 if light.power < 0:
