@@ -83,6 +83,7 @@ def extract_scene(
 
     areas: list = []
     light_notes: list[str] = []  # what the lights' extraction approximated
+    pending: dict = {}  # session_uid -> (object, matrix) of curve-like objects (below)
     for inst in depsgraph.object_instances:
         ob = inst.object
         kind = ob.type
@@ -114,8 +115,17 @@ def extract_scene(
                     light_notes.append(f"light '{ob.name}': negative power ({light.power:g} W) "
                                        "is not supported: left out")
                 lights.append(light)
+        elif kind != "MESH" and not inst.is_instance:
+            # a curve, text or surface: its evaluated geometry set may hand its mesh on as an
+            # instance of itself (the depsgraph then yields both): added only if none comes
+            pending[ob.original.session_uid] = (ob, matrix)
         else:
+            parent = inst.parent if inst.is_instance else None
+            if parent is not None and ob.original.session_uid == parent.original.session_uid:
+                pending.pop(parent.original.session_uid, None)
             geo.add(ob, matrix, count)
+    for ob, matrix in pending.values():
+        geo.add(ob, matrix, count)
 
     with timer.phase("camera"):
         camera = None
