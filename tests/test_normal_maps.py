@@ -125,7 +125,7 @@ def test_a_normal_map_shades_diffuse_direct_as_cycles(tmp_path, strength, mirror
 
 
 def test_a_bump_or_an_object_space_normal_map_is_named_and_left_out():
-    """What is not read is said: a Bump node, and a Normal Map in Object space."""
+    """What is not read is said: a Bump node, a Normal Map in Object space, a Displacement."""
     from lpv_addon.scene_io.extract import extract_scene
 
     sc = _normal_mapped_plane()
@@ -138,6 +138,10 @@ def test_a_bump_or_an_object_space_normal_map_is_named_and_left_out():
     tree.links.new(bump.outputs["Normal"], tree.nodes["Principled BSDF"].inputs["Normal"])
     scene = extract_scene(bpy.context.evaluated_depsgraph_get(), sc, RES)
     assert any("Bump" in line and "left out" in line for line in scene.approximated)
+    displace = tree.nodes.new("ShaderNodeDisplacement")
+    tree.links.new(displace.outputs[0], tree.nodes["Material Output"].inputs["Displacement"])
+    scene = extract_scene(bpy.context.evaluated_depsgraph_get(), sc, RES)
+    assert any("Displacement" in line and "left out" in line for line in scene.approximated)
 
 
 def test_the_worker_carries_the_normal_map_and_the_tangents(tmp_path):

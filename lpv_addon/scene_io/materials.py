@@ -838,6 +838,10 @@ def material_info(mat) -> MaterialInfo:
     normal_uv = None
     if output is not None:
         normal_uv = normal_map(ev, tree, surface, m, diffuse.uv or ev.uv or alpha_uv)
+        displace = output.inputs.get("Displacement")
+        if displace is not None and ev.resolve(displace)[0] is not None:
+            ev.note("Displacement (a bump, or moved surfaces, in Cycles): left out, the "
+                    "mesh's own surface and normals are used")
         volume = output.inputs.get("Volume")
         inside = ev.resolve(volume)[0] if volume is not None else None
         if inside is not None and (surface is None or ev.resolve(surface)[0] is None):
