@@ -29,9 +29,11 @@ PACKAGES = ("lpv_core", "lpv_addon")
 # division, the soft shadows' form-factor weights and the World's diffuse-ray bake about 570
 # more (20,886 then); tangent-space normal maps (the Normal Map node, Blender's tangents, the
 # G-buffer's per-point normal) and the surfels' cut of huge triangles about 270 more (21,153
-# then). The cap catches duplicated code growing back; raise it only for new behaviour, by
-# what that behaviour measures.
-ZIP_PYTHON_LINES = 21_250
+# then); the RSM's shading-normal gain, volume-only and closed emissive objects, portals,
+# curve-like objects taken once and the Displacement note about 105 more (21,258 then). The
+# cap catches duplicated code growing back; raise it only for new behaviour, by what that
+# behaviour measures.
+ZIP_PYTHON_LINES = 21_350
 
 
 def _module_name(path: Path) -> str:
