@@ -89,10 +89,11 @@ def clusters(scene: Scene, diagonal: float) -> list[Cluster]:
         vec = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]).sum(0)
         size = float(np.linalg.norm(vec))
         normal = vec / size if size > 0.5 * 2 * area.sum() else None  # a flat-ish cluster
+        if o not in sides:  # once per object, whose clusters share it
+            sides[o] = outward_side(scene, obj == o)
         out.append(Cluster(name, mi, tri, corners,
                            np.asarray(scene.materials[mi].emission, np.float64), centre, radius,
-                           side=sides.setdefault(o, outward_side(scene, obj == o)),
-                           normal=normal))
+                           side=sides[o], normal=normal))
     return out
 
 

@@ -142,11 +142,12 @@ void main() {
 """
 
 
-# The reflective shadow map's own pass: position and the geometric normal (its length the
-# shading normal's gain on the reflected light, at most 20: the surfel area's 1 / 0.05 cap), and the triangle's index
-# (gl_PrimitiveID, split into two exactly representable floats) instead of a reflectance target:
-# two targets instead of four. Position and normal are the main pass's expressions (the same bits); the reflectance comes from the
-# uploaded per-triangle table (the main pass's target interpolates it: 0.8 reads 0.79999995).
+# The reflective shadow map's own pass: position (the main pass's expression, the same bits),
+# the geometric normal (its length the shading normal's gain on the reflected light, at most
+# 20: the surfel area's 1 / 0.05 cap) and the triangle's index (gl_PrimitiveID, split into two
+# exactly representable floats) instead of a reflectance target: two targets instead of four.
+# The reflectance comes from the uploaded per-triangle table (the main pass's target
+# interpolates it: 0.8 reads 0.79999995).
 RSM_VERTEX_SHADER = """
 #version 330
 uniform mat4 view_proj;
