@@ -105,7 +105,7 @@ class DepthAtlas:
                 inst[i, 16:20] = view[2]
                 inst[i, 20:] = (i // ny, i % ny)
             buf = ctx.buffer(inst.tobytes())
-            vao = ctx.vertex_array(self.program, [(vbo, "3f 36x 1f 1f 4x 2f 1f 24x", "in_pos",
+            vao = ctx.vertex_array(self.program, [(vbo, "3f 36x 1f 1f 4x 2f 1f", "in_pos",
                                                    "in_recv", "in_alpha", "in_uv",
                                                    "in_layer"),
                                                   (buf, "4f 4f 4f 4f 4f 2f/i", "c0", "c1",

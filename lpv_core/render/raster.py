@@ -50,11 +50,13 @@ bool hashed_out() {
 # Cycles flips the mapped normal of a back face.
 NORMAL_MAP = """
 uniform sampler2DArray normal_maps;
+uniform int normal_mapped;  // 0: no normal maps uploaded (in_tan, in_nmap unbound)
 in vec4 v_tan;
 flat in vec2 v_nmap;  // layer (-1: none), Strength
 vec3 mapped(vec3 n) {
+    if (normal_mapped == 0 || v_nmap.x < 0.0) return n;
     vec3 t = v_tan.xyz - n * dot(n, v_tan.xyz);
-    if (v_nmap.x < 0.0 || dot(t, t) < 1e-12) return n;
+    if (dot(t, t) < 1e-12) return n;
     t = normalize(t);
     vec3 c = 2.0 * texture(normal_maps, vec3(fract(v_uv), v_nmap.x)).rgb - 1.0;
     vec3 m = c.x * t + c.y * (v_tan.w < 0.0 ? -1.0 : 1.0) * cross(n, t) + c.z * n;
@@ -209,12 +211,15 @@ ALPHA_MAP_SIDE = 256  # texels a side of each alpha map in the coverage's textur
 ALPHA_MAP_UNIT = 1  # its texture unit
 NORMAL_MAP_SIDE = 1024  # texels a side of each normal map, at most (its own size below)
 NORMAL_MAP_UNIT = 2
-# The vertex buffer: pos, nrm, alb, refl (3 each), recv, alpha, trans, uv (2), layer, tangent
-# (4), normal map (layer, Strength); each pass reads its part (moderngl layouts)
-VERTEX_FLOATS = 24
-MAIN_LAYOUT = ("3f 3f 3f 3f 1f 1f 1f 2f 1f 4f 2f", "in_pos", "in_nrm", "in_alb", "in_refl",
-               "in_recv", "in_alpha", "in_trans", "in_uv", "in_layer", "in_tan", "in_nmap")
-RSM_LAYOUT = ("3f 3f 24x 1f 1f 4x 2f 1f 24x", "in_pos", "in_nrm", "in_recv", "in_alpha",
+# The vertex buffer: pos, nrm, alb, refl (3 each), recv, alpha, trans, uv (2), layer; each pass
+# reads its part (moderngl layouts). Normal maps add a buffer of their own, tangent (4) and
+# map (layer, Strength), bound by the G-buffer passes only: the other passes (shadow, sky and
+# RSM maps) read no more vertex data than without them.
+VERTEX_FLOATS = 18
+MAIN_LAYOUT = ("3f 3f 3f 3f 1f 1f 1f 2f 1f", "in_pos", "in_nrm", "in_alb", "in_refl",
+               "in_recv", "in_alpha", "in_trans", "in_uv", "in_layer")
+MAP_LAYOUT = ("4f 2f", "in_tan", "in_nmap")
+RSM_LAYOUT = ("3f 3f 24x 1f 1f 4x 2f 1f", "in_pos", "in_nrm", "in_recv", "in_alpha",
               "in_uv", "in_layer")
 
 
@@ -346,6 +351,7 @@ class Rasterizer:
         self._alpha_maps = None  # the coverage's texture array (_upload_alpha_maps)
         self._normal_maps = None  # the normal maps' texture array (_upload_normal_maps)
         self._vbo = None
+        self._map_vbo = None  # the normal maps' vertex data (_upload_normal_maps)
         self._key = None
         self._fbos: dict = {}
         self.origin = np.zeros(3)
@@ -409,15 +415,14 @@ class Rasterizer:
             translucency, np.float32).reshape(-1, 1)
         data[..., 15:17] = 0.0
         data[..., 17] = -1.0
-        data[..., 18:22] = 0.0
-        data[..., 22] = -1.0
-        data[..., 23] = 0.0
         self._upload_alpha_maps(alpha_maps, data)
-        self._upload_normal_maps(normal_maps, data)
+        extra = self._upload_normal_maps(normal_maps, data)
         self.release_geometry()
         if t:
             self._vbo = self.ctx.buffer(data.tobytes())
-            self._vao = self.ctx.vertex_array(self.program, [(self._vbo, *MAIN_LAYOUT)])
+            if extra is not None:
+                self._map_vbo = self.ctx.buffer(extra.tobytes())
+            self._vao = self.ctx.vertex_array(self.program, self._gbuffer_buffers(MAIN_LAYOUT))
             self._rsm_vao = self.ctx.vertex_array(self.rsm_program,
                                                   [(self._vbo, *RSM_LAYOUT)])
         self.reflectance = np.ascontiguousarray(data[:, 0, 9:12])
@@ -429,8 +434,10 @@ class Rasterizer:
         if self.corners is not None:
             self.albedo = np.ascontiguousarray(data[:, 0, 6:9])
             for name, (program, layout) in self._programs().items():
+                buffers = (self._gbuffer_buffers(layout) if name == "gbuffer"
+                           else [(self._vbo, *layout)])
                 self._textured[name + "_vao"] = None if not t else self.ctx.vertex_array(
-                    program, [(self._vbo, *layout)])
+                    program, buffers)
         self._key = key
 
     def _upload_alpha_maps(self, alpha_maps, data: np.ndarray) -> None:
@@ -453,15 +460,21 @@ class Rasterizer:
         data[..., 15:17] = np.asarray(uvs, np.float32).reshape(-1, 3, 2)
         data[..., 17] = np.asarray(layer, np.float32).reshape(-1, 1)
 
-    def _upload_normal_maps(self, normal_maps, data: np.ndarray) -> None:
+    def _gbuffer_buffers(self, layout: tuple) -> list:
+        """A G-buffer pass's vertex buffers: the main one, and the normal maps' when there."""
+        return [(self._vbo, *layout)] + ([(self._map_vbo, *MAP_LAYOUT)]
+                                         if self._map_vbo is not None else [])
+
+    def _upload_normal_maps(self, normal_maps, data: np.ndarray) -> np.ndarray | None:
         """The normal maps as one texture array (layers of their largest side, at most
-        NORMAL_MAP_SIDE, bilinear), their layer, Strength, UVs and tangents into the vertex
-        ``data``; none: the array released."""
+        NORMAL_MAP_SIDE, bilinear), their UVs into the vertex ``data``; returns their own
+        vertex data (T, 3, 6): tangent, layer and Strength (None, the array released, without
+        any)."""
         if self._normal_maps is not None:
             self._normal_maps.release()
             self._normal_maps = None
         if normal_maps is None:
-            return
+            return None
         layer, strength, uvs, tangents, maps = normal_maps
         side = min(NORMAL_MAP_SIDE, max(max(m.shape[:2]) for m in maps))
         stack = np.stack([np.stack([_resampled(np.asarray(m, np.float32)[..., c], side)
@@ -473,9 +486,11 @@ class Rasterizer:
 
         self._normal_maps.filter = (moderngl.LINEAR, moderngl.LINEAR)
         data[..., 15:17] = np.asarray(uvs, np.float32).reshape(-1, 3, 2)
-        data[..., 18:22] = np.asarray(tangents, np.float32).reshape(-1, 3, 4)
-        data[..., 22] = np.asarray(layer, np.float32).reshape(-1, 1)
-        data[..., 23] = np.asarray(strength, np.float32).reshape(-1, 1)
+        extra = np.empty(data.shape[:2] + (6,), np.float32)
+        extra[..., 0:4] = np.asarray(tangents, np.float32).reshape(-1, 3, 4)
+        extra[..., 4] = np.asarray(layer, np.float32).reshape(-1, 1)
+        extra[..., 5] = np.asarray(strength, np.float32).reshape(-1, 1)
+        return extra
 
     def _programs(self) -> dict:
         """The textured passes' programs and vertex layouts, compiled on first use."""
@@ -488,10 +503,10 @@ class Rasterizer:
 
     def release_geometry(self) -> None:
         vaos = [self._textured.pop(k) for k in ("gbuffer_vao", "rsm_vao") if k in self._textured]
-        for obj in (self._vao, self._rsm_vao, self._vbo, *vaos):
+        for obj in (self._vao, self._rsm_vao, self._vbo, self._map_vbo, *vaos):
             if obj is not None:
                 obj.release()
-        self._vao = self._rsm_vao = self._vbo = None
+        self._vao = self._rsm_vao = self._vbo = self._map_vbo = None
         self.reflectance = np.zeros((0, 3), np.float32)
         self.specular = self._rsm_table = None
         self._key = None
@@ -538,6 +553,8 @@ class Rasterizer:
             self._alpha_maps.use(location=ALPHA_MAP_UNIT)
             if "alpha_maps" in program:
                 program["alpha_maps"].value = ALPHA_MAP_UNIT
+        if "normal_mapped" in program:
+            program["normal_mapped"].value = int(self._normal_maps is not None)
         if self._normal_maps is not None:
             self._normal_maps.use(location=NORMAL_MAP_UNIT)
             if "normal_maps" in program:
