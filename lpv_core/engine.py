@@ -934,16 +934,17 @@ def _lights_digest(lights) -> list:
 
 
 def _alpha_maps(scene: Scene):
-    """(layer, UVs, maps) of the scene's per-point coverage for Rasterizer.upload, or None."""
+    """(layer, UVs, maps, keys) of the scene's per-point coverage for Rasterizer.upload, or
+    None."""
     maps = scene.alpha_maps()
-    return None if maps is None else (maps[0], scene.uvs, maps[1])
+    return None if maps is None else (maps[0], scene.uvs, maps[1], maps[2])
 
 
 def _normal_maps(scene: Scene):
-    """(layer, Strength, UVs, tangents, maps) of the scene's normal maps for
+    """(layer, Strength, UVs, tangents, maps, keys) of the scene's normal maps for
     Rasterizer.upload, or None."""
     maps = scene.normal_maps()
-    return None if maps is None else (maps[0], maps[1], scene.uvs, scene.tangents, maps[2])
+    return None if maps is None else (maps[0], maps[1], scene.uvs, scene.tangents, *maps[2:])
 
 
 def _inject(backend, grid: Grid, positions, normals, flux, visibility, sel=slice(None)):

@@ -142,7 +142,8 @@ def maps(engine, scene, bounds, stats, k: int | None = None,
                 f"{c.triangles.size} triangles, exact unoccluded form factors; visibility "
                 f"from the cluster's centre ({emitters.SHADOW_RESOLUTION}^2 cube map, "
                 f"{c.radius:.3g} m source)" + ("" if not c.side else
-                                                  "; emits from one side: a closed object's outer one, or the one not capped"))
+                                                  "; emits from one side: a closed object's "
+                                                  "outer one, or the one not capped"))
     stats.add_ms("source_maps", time.perf_counter() - t0)
     return sm
 

@@ -10,11 +10,51 @@ import math
 import numpy as np
 import pytest
 
+
+def _tilted_floor(tilt_deg: float, digest: str):
+    """A core 4 m floor whose constant normal map tilts the normal ``tilt_deg`` towards +X,
+    under a sun 40 deg from the zenith on the +X side, seen from above."""
+    from lpv_core.scene import Camera, GISettings, Light, Material, make_scene
+    from lpv_core.scene.textures import Texture
+    from tools.core_scenes import light_matrix, quad
+
+    t = np.radians(tilt_deg)
+    texel = np.array([0.5 + 0.5 * np.sin(t), 0.5, 0.5 + 0.5 * np.cos(t)], np.float32)
+    tex = Texture("n", np.tile(texel, (4, 4, 1)), digest=digest)
+    pos = quad((-2, -2, 0), (2, -2, 0), (2, 2, 0), (-2, 2, 0))
+    tan = np.zeros((2, 3, 4), np.float32)
+    tan[..., 0], tan[..., 3] = 1.0, 1.0
+    sun = Light("Sun", "SUN", light_matrix((0, 0, 0), (-np.sin(np.radians(40)), 0,
+                                                        -np.cos(np.radians(40)))), power=1.0)
+    cam = Camera.look_at((0, 0, 5), (0, 0, 0), up=(0, 1, 0), fov_y=np.radians(30),
+                         resolution=(8, 8))
+    return make_scene(pos, materials=[Material("m", np.full(3, 0.8, np.float32),
+                                               normal_texture=tex)],
+                      lights=[sun], camera=cam, uvs=(pos[..., :2] + 2) / 4, tangents=tan,
+                      settings=GISettings(grid_resolution=8, rsm_resolution=32,
+                                          shadow_resolution=256, antialias=1))
+
+
+def test_the_normal_maps_texture_is_kept_while_its_maps_are_the_same():
+    """The rasteriser keeps its normal-map texture array while the maps' digests hold (each
+    antialias sample uploads the scene again: 140 ms a 1024^2 map otherwise) and makes it
+    again for another map: Diffuse Direct follows each map's tilt, cos(40 deg - tilt) / pi."""
+    from lpv_core import engine
+    from lpv_core.render import deferred
+
+    eng = engine.Engine()
+    for tilt, digest in ((30.0, "a"), (30.0, "a"), (20.0, "b")):
+        scene = _tilted_floor(tilt, digest)
+        before = eng.raster._normal_maps
+        direct = deferred.render(eng, scene, eng.update(scene))["Diffuse Direct"][..., 0]
+        assert direct.mean() == pytest.approx(np.cos(np.radians(40 - tilt)) / np.pi, rel=1e-4)
+        if digest == "a" and before is not None:
+            assert eng.raster._normal_maps is before  # the same maps: the same array
+
+
 bpy = pytest.importorskip("bpy")
 
 from conftest import factory_scene, lpv_and_cycles
-
-pytestmark = pytest.mark.bpy
 
 RES = (64, 48)
 
@@ -92,6 +132,7 @@ def _inside(ref: dict) -> np.ndarray:
     return inside
 
 
+@pytest.mark.bpy
 @pytest.mark.parametrize("strength, mirrored, textured",
                          [(1.0, False, False), (0.5, False, False), (1.0, True, False),
                           (1.0, False, True)])
@@ -124,6 +165,7 @@ def test_a_normal_map_shades_diffuse_direct_as_cycles(tmp_path, strength, mirror
     assert mapped < 0.05 and flat_err > 4 * mapped, (mapped, flat_err)
 
 
+@pytest.mark.bpy
 def test_a_bump_or_an_object_space_normal_map_is_named_and_left_out():
     """What is not read is said: a Bump node, a Normal Map in Object space, a Displacement."""
     from lpv_addon.scene_io.extract import extract_scene
@@ -167,6 +209,7 @@ def test_the_worker_carries_the_normal_map_and_the_tangents(tmp_path):
     assert np.array_equal(back.tangents, tan)
 
 
+@pytest.mark.bpy
 @pytest.mark.parametrize("mirrored", [False, True])
 def test_each_triangles_own_tangents_are_blenders_on_a_flat_plane(mirrored):
     """The n-gon fallback (extract.triangle_tangents, a triangle's dP/du and bitangent sign)

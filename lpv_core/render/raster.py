@@ -350,6 +350,7 @@ class Rasterizer:
         self._rsm_vao = None
         self._alpha_maps = None  # the coverage's texture array (_upload_alpha_maps)
         self._normal_maps = None  # the normal maps' texture array (_upload_normal_maps)
+        self._array_keys: dict = {}  # what each texture array was made of (_texture_array)
         self._vbo = None
         self._map_vbo = None  # the normal maps' vertex data (_upload_normal_maps)
         self._key = None
@@ -440,25 +441,41 @@ class Rasterizer:
                     program, buffers)
         self._key = key
 
-    def _upload_alpha_maps(self, alpha_maps, data: np.ndarray) -> None:
-        """The alpha maps as one texture array (ALPHA_MAP_SIDE^2 layers, bilinear), their
-        layer and UVs into the vertex ``data``; none: the array released."""
-        if self._alpha_maps is not None:
-            self._alpha_maps.release()
-            self._alpha_maps = None
-        if alpha_maps is None:
-            return
-        layer, uvs, maps = alpha_maps
-        side = ALPHA_MAP_SIDE
-        stack = np.stack([_resampled(np.asarray(m, np.float32)[..., 0], side) for m in maps])
-        self._alpha_maps = self.ctx.texture_array((side, side, len(maps)), 1,
-                                                  np.ascontiguousarray(stack).tobytes(),
-                                                  dtype="f4")
+    def _texture_array(self, name: str, maps: list | None, keys: list | None, side: int,
+                       channels: int):
+        """The ``name`` texture array ("_alpha_maps", "_normal_maps"): bilinear layers of
+        ``maps`` resampled to side^2 x ``channels``, kept while the maps' ``keys`` (digests)
+        and size are the ones it was made of (a render uploads the scene once per antialias
+        sample); None, released, without maps."""
+        made = (None if maps is None else tuple(keys), side, channels)
+        current = getattr(self, name)
+        if current is not None and self._array_keys.get(name) == made:
+            return current
+        if current is not None:
+            current.release()
+        setattr(self, name, None)
+        self._array_keys.pop(name, None)
+        if maps is None:
+            return None
+        stack = np.stack([np.stack([_resampled(np.asarray(m, np.float32)[..., c], side)
+                                    for c in range(channels)], axis=-1) for m in maps])
+        array = self.ctx.texture_array((side, side, len(maps)), channels,
+                                       np.ascontiguousarray(stack).tobytes(), dtype="f4")
         import moderngl
 
-        self._alpha_maps.filter = (moderngl.LINEAR, moderngl.LINEAR)
-        data[..., 15:17] = np.asarray(uvs, np.float32).reshape(-1, 3, 2)
-        data[..., 17] = np.asarray(layer, np.float32).reshape(-1, 1)
+        array.filter = (moderngl.LINEAR, moderngl.LINEAR)
+        setattr(self, name, array)
+        self._array_keys[name] = made
+        return array
+
+    def _upload_alpha_maps(self, alpha_maps, data: np.ndarray) -> None:
+        """The alpha maps as one texture array (ALPHA_MAP_SIDE^2 layers), their layer and
+        UVs into the vertex ``data``; none: the array released."""
+        layer, uvs, maps, keys = alpha_maps or (None,) * 4
+        self._texture_array("_alpha_maps", maps, keys, ALPHA_MAP_SIDE, 1)
+        if alpha_maps is not None:
+            data[..., 15:17] = np.asarray(uvs, np.float32).reshape(-1, 3, 2)
+            data[..., 17] = np.asarray(layer, np.float32).reshape(-1, 1)
 
     def _gbuffer_buffers(self, layout: tuple) -> list:
         """A G-buffer pass's vertex buffers: the main one, and the normal maps' when there."""
@@ -467,24 +484,14 @@ class Rasterizer:
 
     def _upload_normal_maps(self, normal_maps, data: np.ndarray) -> np.ndarray | None:
         """The normal maps as one texture array (layers of their largest side, at most
-        NORMAL_MAP_SIDE, bilinear), their UVs into the vertex ``data``; returns their own
-        vertex data (T, 3, 6): tangent, layer and Strength (None, the array released, without
-        any)."""
-        if self._normal_maps is not None:
-            self._normal_maps.release()
-            self._normal_maps = None
+        NORMAL_MAP_SIDE), their UVs into the vertex ``data``; returns their own vertex data
+        (T, 3, 6): tangent, layer and Strength (None, the array released, without any)."""
         if normal_maps is None:
+            self._texture_array("_normal_maps", None, None, 0, 3)
             return None
-        layer, strength, uvs, tangents, maps = normal_maps
+        layer, strength, uvs, tangents, maps, keys = normal_maps
         side = min(NORMAL_MAP_SIDE, max(max(m.shape[:2]) for m in maps))
-        stack = np.stack([np.stack([_resampled(np.asarray(m, np.float32)[..., c], side)
-                                    for c in range(3)], axis=-1) for m in maps])
-        self._normal_maps = self.ctx.texture_array((side, side, len(maps)), 3,
-                                                   np.ascontiguousarray(stack).tobytes(),
-                                                   dtype="f4")
-        import moderngl
-
-        self._normal_maps.filter = (moderngl.LINEAR, moderngl.LINEAR)
+        self._texture_array("_normal_maps", maps, keys, side, 3)
         data[..., 15:17] = np.asarray(uvs, np.float32).reshape(-1, 3, 2)
         extra = np.empty(data.shape[:2] + (6,), np.float32)
         extra[..., 0:4] = np.asarray(tangents, np.float32).reshape(-1, 3, 4)
@@ -756,6 +763,7 @@ class Rasterizer:
             if maps is not None:
                 maps.release()
         self._alpha_maps = self._normal_maps = None
+        self._array_keys.clear()
         for fbo in self._fbos.values():
             for att in fbo.color_attachments:
                 att.release()

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .textures import Texture
+from .textures import Texture, digest_of
 from .world import World
 
 LIGHT_TYPES = ("POINT", "SPOT", "SUN", "AREA")
@@ -383,43 +383,45 @@ class Scene:
         """(T,) float32 coverage (Material.alpha) per triangle; None when all are opaque."""
         return self._share_per_triangle("alpha", 1.0)
 
-    def alpha_maps(self) -> tuple[np.ndarray, list] | None:
-        """(per-triangle layer (T,) int32, -1: none; the distinct Material.alpha_texture
-        pixels, one per layer) for the rasteriser's per-point coverage; None without any (or
-        without texture coordinates)."""
-        if self.uvs is None or not any(m.alpha_texture is not None for m in self.materials):
-            return None
+    def _texture_layers(self, attr: str) -> tuple[np.ndarray, list, list]:
+        """(layer per material (M + 1,) int32, -1: none, the last for out-of-range indices;
+        the distinct textures' pixels, one per layer; their keys, textures.digest_of) of the
+        materials' ``attr`` textures."""
         layers, maps, seen = np.full(len(self.materials) + 1, -1, np.int32), [], {}
         for i, m in enumerate(self.materials):
-            tex = m.alpha_texture
+            tex = getattr(m, attr)
             if tex is not None:
-                key = tex.digest or id(tex.pixels)
+                key = digest_of(tex)
                 if key not in seen:
                     seen[key] = len(maps)
                     maps.append(tex.pixels)
                 layers[i] = seen[key]
-        return layers[np.clip(self.material_index, 0, len(self.materials))], maps
+        return layers, maps, list(seen)
 
-    def normal_maps(self) -> tuple[np.ndarray, np.ndarray, list] | None:
+    def _per_triangle(self, table: np.ndarray) -> np.ndarray:
+        """A per-material table (M + 1, ...) read per triangle (Blender clamps the index)."""
+        return table[np.clip(self.material_index, 0, len(self.materials))]
+
+    def alpha_maps(self) -> tuple[np.ndarray, list, list] | None:
+        """(per-triangle layer (T,) int32, -1: none; the distinct Material.alpha_texture
+        pixels, one per layer; their keys) for the rasteriser's per-point coverage; None
+        without any (or without texture coordinates)."""
+        if self.uvs is None or not any(m.alpha_texture is not None for m in self.materials):
+            return None
+        layers, maps, keys = self._texture_layers("alpha_texture")
+        return self._per_triangle(layers), maps, keys
+
+    def normal_maps(self) -> tuple[np.ndarray, np.ndarray, list, list] | None:
         """(per-triangle layer (T,) int32, -1: none; Strength (T,) float32; the distinct
-        Material.normal_texture pixels, one per layer) for the G-buffer's per-point normal;
-        None without any (or without texture coordinates and tangents)."""
+        Material.normal_texture pixels, one per layer; their keys) for the G-buffer's
+        per-point normal; None without any (or without texture coordinates and tangents)."""
         if (self.uvs is None or self.tangents is None
                 or not any(m.normal_texture is not None for m in self.materials)):
             return None
-        n = len(self.materials)
-        layers, strength = np.full(n + 1, -1, np.int32), np.zeros(n + 1, np.float32)
-        maps, seen = [], {}
-        for i, m in enumerate(self.materials):
-            tex = m.normal_texture
-            if tex is not None:
-                key = tex.digest or id(tex.pixels)
-                if key not in seen:
-                    seen[key] = len(maps)
-                    maps.append(tex.pixels)
-                layers[i], strength[i] = seen[key], max(float(m.normal_strength), 0.0)
-        index = np.clip(self.material_index, 0, n)
-        return layers[index], strength[index], maps
+        layers, maps, keys = self._texture_layers("normal_texture")
+        strength = np.array([max(float(m.normal_strength), 0.0) for m in self.materials]
+                            + [0.0], np.float32)
+        return self._per_triangle(layers), self._per_triangle(strength), maps, keys
 
     def translucency_per_triangle(self) -> np.ndarray | None:
         """(T,) float32 Material.translucency per triangle; None when no material has any."""
