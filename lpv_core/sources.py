@@ -309,12 +309,13 @@ def emitter_mirror_vpls(clusters: list, material: int, positions: np.ndarray,
 
 
 def camera_light(engine, scene, projection, mask: np.ndarray, combined: np.ndarray,
-                 world: bool = True, seed: tuple[int, int] = (0, 1)) -> None:
+                 world: bool = True, seed: tuple[int, int] = (0, 1),
+                 only: np.ndarray | None = None) -> None:
     """Add what the camera sees of the sources to ``combined`` (H, W, 4): each emitting
     surface's radiance where it is seen (its triangle per pixel, the RSM pass's index) and,
     with ``world`` (not Film > Transparent), the World along the view ray where no surface is
     (bilinear in its map); ``seed``: the G-buffer's hashed alpha, so that the same fragments
-    are seen."""
+    are seen; ``only`` (H, W) bool: the World at these pixels only."""
     h, w = mask.shape
     mats = emitters.emissive_materials(scene)
     if mats and mask.any():
@@ -329,11 +330,12 @@ def camera_light(engine, scene, projection, mask: np.ndarray, combined: np.ndarr
         glow = np.zeros((tri.size, 3), np.float32)
         glow[ok] = table[scene.material_index[tri[ok]]]
         combined[..., :3][mask] += glow
-    if world and not sky.lit(scene.world) and not mask.all():
+    empty = ~mask if only is None else ~mask & only
+    if world and not sky.lit(scene.world) and empty.any():
         from .render.raster import PixelRays
 
-        ys, xs = np.nonzero(~mask)
-        d = PixelRays(scene.camera.view, projection, w, h, ~mask, 0.0).at(
+        ys, xs = np.nonzero(empty)
+        d = PixelRays(scene.camera.view, projection, w, h, empty, 0.0).at(
             np.arange(xs.size), np.zeros((1, 2)))[1][:, 0]
         d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-300)
         combined[ys, xs, :3] += sky.lookup(scene.world, d)

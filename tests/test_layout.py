@@ -30,10 +30,11 @@ PACKAGES = ("lpv_core", "lpv_addon")
 # more (20,886 then); tangent-space normal maps (the Normal Map node, Blender's tangents, the
 # G-buffer's per-point normal) and the surfels' cut of huge triangles about 270 more (21,153
 # then); the RSM's shading-normal gain, volume-only and closed emissive objects, portals,
-# curve-like objects taken once and the Displacement note about 105 more (21,258 then). The
+# curve-like objects taken once and the Displacement note about 105 more (21,258 then); the
+# sliver pixels' border samples through a cropped camera about 70 more (21,368 then). The
 # cap catches duplicated code growing back; raise it only for new behaviour, by what that
 # behaviour measures.
-ZIP_PYTHON_LINES = 21_350
+ZIP_PYTHON_LINES = 21_400
 
 
 def _module_name(path: Path) -> str:

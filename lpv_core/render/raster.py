@@ -673,7 +673,7 @@ class Rasterizer:
 
     def gbuffer(self, view: np.ndarray, projection: np.ndarray, width: int,
                 height: int, footprint: float = 0.0, holdout: bool = False,
-                seed: tuple[int, int] = (0, 1)) -> tuple:
+                seed: tuple[int, int] = (0, 1), only: np.ndarray | None = None) -> tuple:
         """The covered pixels of a camera view, as ``render`` gives them at frame.covered
         (the same numbers, pixels in row-major order, rows top-first): (covered (H, W) bool,
         world positions (M, 3) float64, normals (M, 3) float64, albedo (M, 3) float32,
@@ -681,7 +681,8 @@ class Rasterizer:
         translucency (M,) float32 after them. Triangles hidden from the camera are left out. Converts only what is covered,
         not whole frames. ``footprint``: the side of each pixel's cell in pixels over which
         a textured albedo is integrated (textures.footprint_factor; 0: read at the pixel's
-        centre); ``seed``: the hashed alpha's (antialias sample, samples)."""
+        centre); ``seed``: the hashed alpha's (antialias sample, samples); ``only`` (H, W)
+        bool: these pixels alone are taken (covered is False elsewhere)."""
         if self.corners is None or self._vao is None:
             pos4, nrm4, alb4 = self.read(view, projection, width, height, False, (0, 1, 2),
                                          HIDDEN_FROM_CAMERA, seed)
@@ -693,6 +694,8 @@ class Rasterizer:
                        HIDDEN_FROM_CAMERA, seed)
             pos4, nrm4, alb4, bary4 = self._targets(fbo, (0, 1, 2, 4), width, height)
         covered = pos4[..., 3] > 0.5
+        if only is not None:
+            covered &= only
         pos = pos4[covered][:, :3].astype(np.float64) + self.origin
         nrm = nrm4[covered][:, :3].astype(np.float64)
         alb = alb4[covered]
