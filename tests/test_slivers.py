@@ -10,8 +10,14 @@ import pytest
 from lpv_core import engine
 from lpv_core.render import deferred
 from lpv_core.scene import GISettings
-from lpv_core.scene.model import Camera, Light, Material, look_at_matrix, make_scene
-from lpv_core.scene.model import orthographic_matrix
+from lpv_core.scene.model import (
+    Camera,
+    Light,
+    Material,
+    look_at_matrix,
+    make_scene,
+    orthographic_matrix,
+)
 from tools.core_scenes import light_matrix
 
 ALBEDO = np.array([0.6, 0.5, 0.4], np.float32)
