@@ -114,8 +114,8 @@ def _sample_sums(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats,
     total: dict = {}
     hits = np.zeros((h, w) if only is None else int(only.sum()), np.int32)
     for k, (ox, oy) in enumerate(offsets):
-        # the projection moved by a sub-pixel offset, with the image's memory (a w s x h s
-        # image would need s^2 times)
+        # the projection moved by a sub-pixel offset, with the image's memory (one image
+        # at s times the resolution would need s^2 times)
         proj = np.array(scene.camera.projection, np.float64)
         proj[0] += (ox - 0.5) * 2.0 / w * proj[3]
         proj[1] += (oy - 0.5) * 2.0 / h * proj[3]
