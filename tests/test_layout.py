@@ -31,10 +31,11 @@ PACKAGES = ("lpv_core", "lpv_addon")
 # G-buffer's per-point normal) and the surfels' cut of huge triangles about 270 more (21,153
 # then); the RSM's shading-normal gain, volume-only and closed emissive objects, portals,
 # curve-like objects taken once and the Displacement note about 105 more (21,258 then); the
-# sliver pixels' border samples through a cropped camera about 70 more (21,368 then). The
+# sliver pixels' border samples through a cropped camera about 70 more (21,368 then); the
+# shadow taps' occluder planes (thin walls' edges, cube seams) about 110 more (21,479 then). The
 # cap catches duplicated code growing back; raise it only for new behaviour, by what that
 # behaviour measures.
-ZIP_PYTHON_LINES = 21_400
+ZIP_PYTHON_LINES = 21_500
 
 
 def _module_name(path: Path) -> str:

@@ -15,6 +15,7 @@ KINDS = {"POINT": 0, "SPOT": 1, "AREA": 2, "SUN": 3}  # the light types the kern
 # render.direct's constants (the stage owns them; a kernel never imports its stage)
 SEARCH_SIDE, FILTER_SIDE, SEARCH_AT, PYRAMID_FROM = 6, 6, 0.5, 2  # REFINE 2: _sub_blocks
 HARD, SPHERE, RECTANGLE, ELLIPSE, CONE = 0, 1, 2, 3, 4
+OFFSET_TEXELS, BIAS_TEXELS = 1.5, 0.001
 HASH_A = (12.9898, 78.233, 37.719, 43758.5453)
 HASH_B = (39.3468, 11.135, 83.155, 24634.6345)
 
@@ -315,9 +316,10 @@ def _visibility(lp, mats, ortho, scale, depths, face_view, single, res, skind, s
     mat = mats[view]
     if ortho[view]:
         world = 2.0 * scale[view] / res
-        qx, qy, qz = px + nx * world * 1.5, py + ny * world * 1.5, pz + nz * world * 1.5
+        o = world * OFFSET_TEXELS
+        qx, qy, qz = px + nx * o, py + ny * o, pz + nz * o
         dist = -(qx * mat[2, 0] + qy * mat[2, 1] + qz * mat[2, 2] + mat[2, 3])
-        bias = world * 1.5
+        bias = world * BIAS_TEXELS
         texel = world
     else:
         rx, ry, rz = px - lp[0], py - lp[1], pz - lp[2]
@@ -325,8 +327,12 @@ def _visibility(lp, mats, ortho, scale, depths, face_view, single, res, skind, s
         qx, qy, qz = px + nx * world, py + ny * world, pz + nz * world
         ox, oy, oz = qx - lp[0], qy - lp[1], qz - lp[2]
         dist = np.sqrt(ox * ox + oy * oy + oz * oz)
-        bias = world * 1.5
+        bias = world * BIAS_TEXELS
         texel = 2.0 * scale[view] / res
+        view = _view_of(lp, face_view, single, qx, qy, qz)  # direct._receivers: by a seam
+        if view < 0:
+            return 1.0
+        mat = mats[view]
     hard = _pcf(mat, ortho[view], scale[view], depths[view], res, qx, qy, qz, dist, bias)
     if skind == HARD:
         return hard
@@ -361,9 +367,53 @@ def _pcf(mat, ortho, scale, depth, res, qx, qy, qz, d, bias):  # pragma: no cove
         for dx in range(2):
             wx = tx if dx else 1.0 - tx
             xs = min(max(x0 + dx, 0), res - 1)
-            if d <= depth[ys, xs] + bias:
+            if d <= _plane_depth(depth, res, xs, ys, fx - xs, fy - ys) + bias:
                 acc += wx * wy
     return acc
+
+
+@jit.kernel
+def _slope(c, lo, hi, lo2, hi2):  # pragma: no cover
+    """direct._slope of one texel of depth c, its neighbours lo, hi and the next out."""
+    a, b = c - lo, hi - c
+    ea, eb = abs(2.0 * lo - lo2 - c), abs(2.0 * hi - hi2 - c)
+    if not np.isfinite(ea):
+        ea = abs(a) if np.isfinite(a) else np.inf
+    if not np.isfinite(eb):
+        eb = abs(b) if np.isfinite(b) else np.inf
+    g = a if ea <= eb else b
+    return g if np.isfinite(g) else 0.0
+
+
+@jit.kernel
+def _texel_plane(depth, res, xs, ys, ox, oy):  # pragma: no cover
+    """direct._plane_depth's plane of one texel (inf where it is empty)."""
+    c = np.float64(depth[ys, xs])
+    if not np.isfinite(c):
+        return np.inf
+    gx = _slope(c, np.float64(depth[ys, max(xs - 1, 0)]),
+                np.float64(depth[ys, min(xs + 1, res - 1)]),
+                np.float64(depth[ys, max(xs - 2, 0)]),
+                np.float64(depth[ys, min(xs + 2, res - 1)]))
+    gy = _slope(c, np.float64(depth[max(ys - 1, 0), xs]),
+                np.float64(depth[min(ys + 1, res - 1), xs]),
+                np.float64(depth[max(ys - 2, 0), xs]),
+                np.float64(depth[min(ys + 2, res - 1), xs]))
+    return c + gx * ox + gy * oy
+
+
+@jit.kernel
+def _plane_depth(depth, res, xs, ys, ox, oy):  # pragma: no cover
+    """direct._plane_depth of one texel: its plane, an empty one its neighbours' nearest."""
+    p = _texel_plane(depth, res, xs, ys, ox, oy)
+    if p != np.inf:
+        return p
+    for k in range(4):
+        sx = 1 if k == 0 else (-1 if k == 1 else 0)
+        sy = 1 if k == 2 else (-1 if k == 3 else 0)
+        nx, ny = min(max(xs + sx, 0), res - 1), min(max(ys + sy, 0), res - 1)
+        p = min(p, _texel_plane(depth, res, nx, ny, ox - (nx - xs), oy - (ny - ys)))
+    return p
 
 
 @jit.kernel

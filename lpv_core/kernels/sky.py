@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..runtime import jit, pool
-from .direct import _pcf
+from .direct import BIAS_TEXELS, OFFSET_TEXELS, _pcf
 
 
 def irradiance(directions, weights, radiance, views, half, depths, positions, normals,
@@ -43,7 +43,7 @@ def _sky_kernel(pos, nrm, dirs, weights, rad, views, half, depths, pcf, first_hi
     for k in range(k_count):
         dark = rad[k, 0] == 0.0 and rad[k, 1] == 0.0 and rad[k, 2] == 0.0
         hk = half[k]
-        world = 2.0 * hk / res  # a texel; render/direct.py's offset and bias: 1.5 of them
+        world = 2.0 * hk / res  # a texel; the surfels' one tap: offset and bias 1.5 of them
         eps, off, lim = first_hit * world, 1.5 * world, 1.0 + 2.0 / res
         v, dep = views[k], depths[k]
         v00, v01, v02, v03 = v[0, 0], v[0, 1], v[0, 2], v[0, 3]
@@ -60,10 +60,10 @@ def _sky_kernel(pos, nrm, dirs, weights, rad, views, half, depths, pcf, first_hi
                 continue
             if pcf:
                 for m in range(a, starts[r + 1]):
-                    ox, oy, oz = (pos[m, 0] + nx * world * 1.5, pos[m, 1] + ny * world * 1.5,
-                                  pos[m, 2] + nz * world * 1.5)
+                    o = world * OFFSET_TEXELS
+                    ox, oy, oz = pos[m, 0] + nx * o, pos[m, 1] + ny * o, pos[m, 2] + nz * o
                     d = -(v20 * ox + v21 * oy + v22 * oz + v23)
-                    vis = _pcf(v, True, hk, dep, res, ox, oy, oz, d, world * 1.5)
+                    vis = _pcf(v, True, hk, dep, res, ox, oy, oz, d, world * BIAS_TEXELS)
                     s = weights[k] * c * vis
                     out[m, 0] += s * rad[k, 0]
                     out[m, 1] += s * rad[k, 1]

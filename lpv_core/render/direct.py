@@ -30,6 +30,12 @@ FILTER_SIDE = 6  # percentage-closer taps: 6 x 6 strata over the light
 SEARCH_AT = 0.5  # the search looks for blockers over the half of the way nearer the receiver
 PYRAMID_FROM = 2  # the early outs' finest blocks: 4 x 4 texels (8 channels of 1/12 the map)
 REFINE = 2  # a failing block is read again as its sub-blocks 2 and then 4 levels down
+# The receiver's offset along its normal, in texels: in front of its own surface at every
+# slope a 2 x 2 filter reads (sqrt 2 texels, _plane_depth), so the depth bias only absorbs
+# float32 rounding; a bias of texels lit a receiver through a wall closer than that (a thin
+# wall's edge, docs/decisions.md)
+OFFSET_TEXELS = 1.5
+BIAS_TEXELS = 0.001
 # Source kinds (Source.kind), shared with kernels/direct.py
 HARD, SPHERE, RECTANGLE, ELLIPSE, CONE = 0, 1, 2, 3, 4
 
@@ -327,22 +333,76 @@ def _receivers(shadow: ShadowMap, positions: np.ndarray, normals: np.ndarray):
         p, n = positions[sel], normals[sel]
         if view.ortho:
             world = 2.0 * view.half_extent / res
-            p_off[sel] = p + n * world * 1.5
+            p_off[sel] = p + n * world * OFFSET_TEXELS
             dist[sel] = -_transform(view.view, p_off[sel])[:, 2]
-            bias[sel] = world * 1.5
+            bias[sel] = world * BIAS_TEXELS
             texel[sel] = world
         else:
             d = np.linalg.norm(p - light.position, axis=1)
             world = d * (2.0 * view.tan_half / res) * 1.8  # worst case at the face corner
             p_off[sel] = p + n * world[:, None]
             dist[sel] = np.linalg.norm(p_off[sel] - light.position, axis=1)
-            bias[sel] = world * 1.5
+            bias[sel] = world * BIAS_TEXELS
             texel[sel] = 2.0 * view.tan_half / res
+    if light.type != "SUN" and len(shadow.views) > 1:
+        # the cube face the offset point falls in (a receiver by a seam: its own face's view
+        # may not hold it; every face has the same texel, so the rest stands)
+        face_of = _view_indices(shadow, p_off)
     return face_of, p_off, dist, bias, texel
 
 
+def _slope(depth: np.ndarray, xs, ys, ax: int) -> np.ndarray:
+    """Per texel, its surface's depth step to the next texel along axis ``ax`` (1: columns,
+    0: rows): the one-sided difference whose line through the next texel out predicts the
+    texel best, so that at an edge between two surfaces (a wall meeting a floor) each keeps
+    its own slope [Mara et al. 2017's depth-derived normals]; 0 where no side is finite."""
+    res = depth.shape[0]
+
+    def at(k):
+        if ax == 1:
+            return depth[ys, np.clip(xs + k, 0, res - 1)].astype(np.float64)
+        return depth[np.clip(ys + k, 0, res - 1), xs].astype(np.float64)
+
+    c, lo, hi = at(0), at(-1), at(1)
+    with np.errstate(invalid="ignore"):
+        a, b = c - lo, hi - c
+        ea, eb = np.abs(2.0 * lo - at(-2) - c), np.abs(2.0 * hi - at(2) - c)
+    ea = np.where(np.isfinite(ea), ea, np.where(np.isfinite(a), np.abs(a), np.inf))
+    eb = np.where(np.isfinite(eb), eb, np.where(np.isfinite(b), np.abs(b), np.inf))
+    g = np.where(ea <= eb, a, b)
+    return np.where(np.isfinite(g), g, 0.0)
+
+
+def _plane_depth(depth: np.ndarray, xs, ys, ox, oy) -> np.ndarray:
+    """The depth of texel (xs, ys)'s surface at (ox, oy) texels from its centre, its plane
+    taken from the map's differences (_slope): a tap then tests a receiver against the
+    occluder itself, not against its centre's depth, so that a receiver a texel's slope
+    behind a grazing occluder (a ceiling beside a wall) is not lit through it. An empty
+    texel takes the nearest of its 4 neighbours' planes carried over to it: a silhouette
+    moves out by under a texel, and a receiver at a closed shell's edge, whose own surface
+    ends there too, sees the shell, not the empty texel beyond it."""
+    res = depth.shape[0]
+
+    def plane(x, y, dx, dy):
+        c = depth[y, x].astype(np.float64)
+        with np.errstate(invalid="ignore"):
+            p = c + _slope(depth, x, y, 1) * dx + _slope(depth, x, y, 0) * dy
+        return np.where(np.isfinite(c), p, np.inf)
+
+    out = plane(xs, ys, ox, oy)
+    empty = np.isinf(out)
+    if empty.any():
+        for sx, sy in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+            nx = np.clip(xs + sx, 0, res - 1)
+            ny = np.clip(ys + sy, 0, res - 1)
+            out = np.where(empty, np.minimum(out, plane(nx, ny, ox - (nx - xs),
+                                                          oy - (ny - ys))), out)
+    return out
+
+
 def _hard(shadow: ShadowMap, face_of, p_off, dist, bias) -> np.ndarray:
-    """2x2 bilinear percentage-closer filtering of each offset receiver in its view."""
+    """2x2 bilinear percentage-closer filtering of each offset receiver in its view, each
+    tap against its texel's occluder plane (_plane_depth)."""
     res = shadow.resolution
     vis = np.ones(p_off.shape[0])
     for i, (view, depth) in enumerate(zip(shadow.views, shadow.depths)):
@@ -370,8 +430,9 @@ def _hard(shadow: ShadowMap, face_of, p_off, dist, bias) -> np.ndarray:
             for dx, wx in ((0, 1.0 - tx), (1, tx)):
                 xs = np.clip(x0 + dx, 0, res - 1)
                 ys = np.clip(y0 + dy, 0, res - 1)
-                lit = d <= depth[ys, xs] + bias[sel]
-                acc += wx * wy * lit
+                # the tap's occluder plane at the receiver (_plane_depth)
+                t = _plane_depth(depth, xs, ys, fx - xs, fy - ys)
+                acc += wx * wy * (d <= t + bias[sel])
         inside = (np.abs(u) <= 1.0) & (np.abs(v) <= 1.0)
         vis[sel] = np.where(inside, acc, 1.0)
     return vis
