@@ -149,7 +149,7 @@ def shadow_maps(atlas, lights: list, bounds, fit, res: int) -> list:
     _VIEWS[:] = [(lights, key, views),
                  *(e for e in _VIEWS if e[2] is not views)][:1 + RENDER_SETS]
     stack = atlas.render(views, res)
-    maps = [ShadowMap(s, [v], [stack[i]], res, stack[i:i + 1])
+    maps = [ShadowMap(s, [v], [stack[i]], res, stack[i:i + 1], planes=False)
             for i, (s, v) in enumerate(zip(lights, views))]
     _STACK[:] = [(maps, stack), *_STACK[:RENDER_SETS]]
     return maps

@@ -333,7 +333,8 @@ def _visibility(lp, mats, ortho, scale, depths, face_view, single, res, skind, s
         if view < 0:
             return 1.0
         mat = mats[view]
-    hard = _pcf(mat, ortho[view], scale[view], depths[view], res, qx, qy, qz, dist, bias)
+    hard = _pcf(mat, ortho[view], scale[view], depths[view], res, qx, qy, qz, dist, bias,
+                True)
     if skind == HARD:
         return hard
     return _soft(lp, mats, ortho, scale, depths, face_view, single, res, skind, su, sv, srad,
@@ -342,9 +343,9 @@ def _visibility(lp, mats, ortho, scale, depths, face_view, single, res, skind, s
 
 
 @jit.kernel
-def _pcf(mat, ortho, scale, depth, res, qx, qy, qz, d, bias):  # pragma: no cover
+def _pcf(mat, ortho, scale, depth, res, qx, qy, qz, d, bias, planes):  # pragma: no cover
     """direct._hard of one offset receiver: 2x2 bilinear percentage-closer filtering of its
-    distance (sun: depth) against the map, 1 outside the view."""
+    distance (sun: depth) against the map, 1 outside the view; ``planes``: ShadowMap.planes."""
     vx = qx * mat[0, 0] + qy * mat[0, 1] + qz * mat[0, 2] + mat[0, 3]
     vy = qx * mat[1, 0] + qy * mat[1, 1] + qz * mat[1, 2] + mat[1, 3]
     vz = qx * mat[2, 0] + qy * mat[2, 1] + qz * mat[2, 2] + mat[2, 3]
@@ -367,7 +368,8 @@ def _pcf(mat, ortho, scale, depth, res, qx, qy, qz, d, bias):  # pragma: no cove
         for dx in range(2):
             wx = tx if dx else 1.0 - tx
             xs = min(max(x0 + dx, 0), res - 1)
-            if d <= _plane_depth(depth, res, xs, ys, fx - xs, fy - ys) + bias:
+            t = _plane_depth(depth, res, xs, ys, fx - xs, fy - ys) if planes else depth[ys, xs]
+            if d <= t + bias:
                 acc += wx * wy
     return acc
 

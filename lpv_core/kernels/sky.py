@@ -63,7 +63,7 @@ def _sky_kernel(pos, nrm, dirs, weights, rad, views, half, depths, pcf, first_hi
                     o = world * OFFSET_TEXELS
                     ox, oy, oz = pos[m, 0] + nx * o, pos[m, 1] + ny * o, pos[m, 2] + nz * o
                     d = -(v20 * ox + v21 * oy + v22 * oz + v23)
-                    vis = _pcf(v, True, hk, dep, res, ox, oy, oz, d, world * BIAS_TEXELS)
+                    vis = _pcf(v, True, hk, dep, res, ox, oy, oz, d, world * BIAS_TEXELS, False)
                     s = weights[k] * c * vis
                     out[m, 0] += s * rad[k, 0]
                     out[m, 1] += s * rad[k, 1]
