@@ -103,3 +103,23 @@ def test_a_lamp_inside_lights_the_rooms_corners_fully(compiled):
     assert (shadowed <= open_ * (1 + 1e-9)).all()
     assert shadowed.sum() >= (1 - 1e-3) * open_.sum(), 1 - shadowed.sum() / open_.sum()
     assert (shadowed < open_ * (1 - 1e-9)).sum() <= 10
+
+
+@pytest.mark.skipif(not jit.enabled(), reason="LPV_JIT=0: the kernels are off")
+@pytest.mark.parametrize("planes", [True, False])
+def test_compiled_twin_follows_the_maps_planes_switch(planes):
+    """ShadowMap.planes False (the World's pixel maps) tests the texels' centre depths in the
+    compiled path as in the numpy one; the two settings differ at the room's edges."""
+    light = OUTSIDE["sun_low"]()
+    scene = make_scene(_room(), lights=[light], settings=GISettings())
+    eng = engine.Engine()
+    shadow = eng.shadow_map(scene, light, eng.upload(scene, engine.Stats()), 1024)
+    pos, nrm = _near_edges(np.random.default_rng(7), 4000)
+    shadow.planes = planes
+    got = direct.visibility(shadow, pos, nrm)
+    with jit.disabled():
+        want = direct.visibility(shadow, pos, nrm)
+        shadow.planes = not planes
+        other = direct.visibility(shadow, pos, nrm)
+    np.testing.assert_allclose(got, want, atol=1e-9)
+    assert np.abs(got - other).max() > 0.5

@@ -48,8 +48,9 @@ def _shadow_args(shadow, src, light: Light) -> tuple:
         levs = np.stack([offs, sizes])  # one argument less per call: ~1 ns a word
     else:
         pyr, levs = np.zeros((0, 0, 8), np.float32), np.zeros((2, 1), np.int64)
-    return (mats, ortho, scale, depths, face_view, single, res, kind, su, sv, srad, near,
-            hashes, pyr, levs)
+    planes = bool(shadow.planes) if shadowed else True  # direct.ShadowMap.planes
+    return (mats, ortho, scale, depths, face_view, single, res, planes, kind, su, sv, srad,
+            near, hashes, pyr, levs)
 
 
 def irradiance(light: Light, positions: np.ndarray, normals: np.ndarray,
@@ -243,7 +244,7 @@ def _area(polys, radiance, tan_half, norm, lp, axis, px, py, pz, nx, ny, nz):  #
 
 @jit.kernel
 def _direct_kernel(kind, lp, axis, power, cos_half, smooth, polys, radiance, tan_half, norm,
-                   lrad2, sphere, mats, ortho, scale, depths, face_view, single, res, skind, su, sv, srad,
+                   lrad2, sphere, mats, ortho, scale, depths, face_view, single, res, planes, skind, su, sv, srad,
                    near, hashes, pyr, levs, pos, nrm, out, m0, m1):  # pragma: no cover
     """``irradiance`` (per unit colour) of points m0..m1-1: lights.intensity and
     lights.round_geometry (the sun: E cos; area lights: the contour integral), then for lit points with
@@ -273,19 +274,20 @@ def _direct_kernel(kind, lp, axis, power, cos_half, smooth, polys, radiance, tan
                     inten = power / four_pi * (1.0 if cos_a > cos_half else 0.0)
             e = inten * round_geometry(cos_r, d2, lrad2, sphere)
         if e > 0 and mats.shape[0] > 0:
-            e *= _visibility(lp, mats, ortho, scale, depths, face_view, single, res, skind, su,
-                             sv, srad, near, hashes, pyr, levs, px, py, pz, nx, ny, nz)
+            e *= _visibility(lp, mats, ortho, scale, depths, face_view, single, res, planes,
+                             skind, su, sv, srad, near, hashes, pyr, levs, px, py, pz, nx, ny,
+                             nz)
         out[m] = e
 
 
 @jit.kernel
-def _visibility_kernel(lp, mats, ortho, scale, depths, face_view, single, res, skind, su, sv,
-                       srad, near, hashes, pyr, levs, pos, nrm, out, m0,
+def _visibility_kernel(lp, mats, ortho, scale, depths, face_view, single, res, planes, skind,
+                       su, sv, srad, near, hashes, pyr, levs, pos, nrm, out, m0,
                        m1):  # pragma: no cover
     """``visibility`` of points m0..m1-1."""
     for m in range(m0, m1):
-        out[m] = _visibility(lp, mats, ortho, scale, depths, face_view, single, res, skind,
-                             su, sv, srad, near, hashes, pyr, levs, pos[m, 0],
+        out[m] = _visibility(lp, mats, ortho, scale, depths, face_view, single, res, planes,
+                             skind, su, sv, srad, near, hashes, pyr, levs, pos[m, 0],
                              pos[m, 1], pos[m, 2], nrm[m, 0], nrm[m, 1], nrm[m, 2])
 
 
@@ -305,8 +307,8 @@ def _view_of(lp, face_view, single, x, y, z):  # pragma: no cover
 
 
 @jit.kernel
-def _visibility(lp, mats, ortho, scale, depths, face_view, single, res, skind, su, sv, srad,
-                near, hashes, pyr, levs, px, py, pz, nx, ny, nz):  # pragma: no cover
+def _visibility(lp, mats, ortho, scale, depths, face_view, single, res, planes, skind, su, sv,
+                srad, near, hashes, pyr, levs, px, py, pz, nx, ny, nz):  # pragma: no cover
     """direct.visibility of one receiver: its view, normal offset, distance and bias
     (direct._receivers), the bilinear test (direct._hard), then for a source with a size the
     soft shadow (direct._soft)."""
@@ -334,7 +336,7 @@ def _visibility(lp, mats, ortho, scale, depths, face_view, single, res, skind, s
             return 1.0
         mat = mats[view]
     hard = _pcf(mat, ortho[view], scale[view], depths[view], res, qx, qy, qz, dist, bias,
-                True)
+                planes)
     if skind == HARD:
         return hard
     return _soft(lp, mats, ortho, scale, depths, face_view, single, res, skind, su, sv, srad,

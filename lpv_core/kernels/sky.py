@@ -45,6 +45,7 @@ def _sky_kernel(pos, nrm, dirs, weights, rad, views, half, depths, pcf, first_hi
         hk = half[k]
         world = 2.0 * hk / res  # a texel; the surfels' one tap: offset and bias 1.5 of them
         eps, off, lim = first_hit * world, 1.5 * world, 1.0 + 2.0 / res
+        o, bias = world * OFFSET_TEXELS, world * BIAS_TEXELS  # the pixels' 2x2 test
         v, dep = views[k], depths[k]
         v00, v01, v02, v03 = v[0, 0], v[0, 1], v[0, 2], v[0, 3]
         v10, v11, v12, v13 = v[1, 0], v[1, 1], v[1, 2], v[1, 3]
@@ -60,10 +61,9 @@ def _sky_kernel(pos, nrm, dirs, weights, rad, views, half, depths, pcf, first_hi
                 continue
             if pcf:
                 for m in range(a, starts[r + 1]):
-                    o = world * OFFSET_TEXELS
                     ox, oy, oz = pos[m, 0] + nx * o, pos[m, 1] + ny * o, pos[m, 2] + nz * o
                     d = -(v20 * ox + v21 * oy + v22 * oz + v23)
-                    vis = _pcf(v, True, hk, dep, res, ox, oy, oz, d, world * BIAS_TEXELS, False)
+                    vis = _pcf(v, True, hk, dep, res, ox, oy, oz, d, bias, False)
                     s = weights[k] * c * vis
                     out[m, 0] += s * rad[k, 0]
                     out[m, 1] += s * rad[k, 1]
