@@ -15,7 +15,7 @@ KINDS = {"POINT": 0, "SPOT": 1, "AREA": 2, "SUN": 3}  # the light types the kern
 # render.direct's constants (the stage owns them; a kernel never imports its stage)
 SEARCH_SIDE, FILTER_SIDE, SEARCH_AT, PYRAMID_FROM = 6, 6, 0.5, 2  # REFINE 2: _sub_blocks
 HARD, SPHERE, RECTANGLE, ELLIPSE, CONE = 0, 1, 2, 3, 4
-OFFSET_TEXELS, BIAS_TEXELS = 1.5, 0.001
+OFFSET_TEXELS, BIAS_TEXELS, BESIDE_TEXELS = 1.5, 0.001, 0.02
 HASH_A = (12.9898, 78.233, 37.719, 43758.5453)
 HASH_B = (39.3468, 11.135, 83.155, 24634.6345)
 
@@ -390,11 +390,8 @@ def _slope(c, lo, hi, lo2, hi2):  # pragma: no cover
 
 
 @jit.kernel
-def _texel_plane(depth, res, xs, ys, ox, oy):  # pragma: no cover
-    """direct._plane_depth's plane of one texel (inf where it is empty)."""
-    c = np.float64(depth[ys, xs])
-    if not np.isfinite(c):
-        return np.inf
+def _slopes(depth, res, xs, ys, c):  # pragma: no cover
+    """direct._slope of texel (xs, ys) of depth c along its columns and rows."""
     gx = _slope(c, np.float64(depth[ys, max(xs - 1, 0)]),
                 np.float64(depth[ys, min(xs + 1, res - 1)]),
                 np.float64(depth[ys, max(xs - 2, 0)]),
@@ -403,7 +400,62 @@ def _texel_plane(depth, res, xs, ys, ox, oy):  # pragma: no cover
                 np.float64(depth[min(ys + 1, res - 1), xs]),
                 np.float64(depth[max(ys - 2, 0), xs]),
                 np.float64(depth[min(ys + 2, res - 1), xs]))
+    return gx, gy
+
+
+@jit.kernel
+def _texel_plane(depth, res, xs, ys, ox, oy):  # pragma: no cover
+    """direct._plane_depth's plane of one texel (inf where it is empty)."""
+    c = np.float64(depth[ys, xs])
+    if not np.isfinite(c):
+        return np.inf
+    gx, gy = _slopes(depth, res, xs, ys, c)
     return c + gx * ox + gy * oy
+
+
+@jit.kernel
+def _ray_point(mat, ortho, s, lp, uc, vc, t):  # pragma: no cover
+    """The point at depth t on the ray through map coordinates (uc, vc) (direct._texel_ray)."""
+    if ortho:
+        ax, ay, az = uc * s - mat[0, 3], vc * s - mat[1, 3], -mat[2, 3]
+        ox = ax * mat[0, 0] + ay * mat[1, 0] + az * mat[2, 0]
+        oy = ax * mat[0, 1] + ay * mat[1, 1] + az * mat[2, 1]
+        oz = ax * mat[0, 2] + ay * mat[1, 2] + az * mat[2, 2]
+        return ox - t * mat[2, 0], oy - t * mat[2, 1], oz - t * mat[2, 2]
+    ax, ay = uc * s, vc * s
+    fx = ax * mat[0, 0] + ay * mat[1, 0] - mat[2, 0]
+    fy = ax * mat[0, 1] + ay * mat[1, 1] - mat[2, 1]
+    fz = ax * mat[0, 2] + ay * mat[1, 2] - mat[2, 2]
+    k = t / np.sqrt(fx * fx + fy * fy + fz * fz)
+    return lp[0] + k * fx, lp[1] + k * fy, lp[2] + k * fz
+
+
+@jit.kernel
+def _beside_occluder(depth, res, mat, ortho, s, lp, ix, iy, d, qx, qy, qz,
+                     beside):  # pragma: no cover
+    """direct._beside_occluder of one tap: the receiver q on the light's side of the plane of
+    the occluder at texel (ix, iy), depth d, by over ``beside`` texels."""
+    gx, gy = _slopes(depth, res, ix, iy, d)
+    uc = (ix + 0.5) / res * 2.0 - 1.0
+    vc = 1.0 - (iy + 0.5) / res * 2.0
+    step = 2.0 / res
+    wx, wy, wz = _ray_point(mat, ortho, s, lp, uc, vc, d)
+    ax, ay, az = _ray_point(mat, ortho, s, lp, uc + step, vc, d + gx)
+    bx, by, bz = _ray_point(mat, ortho, s, lp, uc, vc - step, d + gy)
+    ax, ay, az = ax - wx, ay - wy, az - wz
+    bx, by, bz = bx - wx, by - wy, bz - wz
+    nx, ny, nz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+    if ortho:
+        lx, ly, lz = mat[2, 0], mat[2, 1], mat[2, 2]
+    else:
+        lx, ly, lz = lp[0] - wx, lp[1] - wy, lp[2] - wz
+    side = nx * lx + ny * ly + nz * lz
+    if side == 0.0 or not np.isfinite(side):
+        return False
+    gap = (nx * (qx - wx) + ny * (qy - wy) + nz * (qz - wz)) * (1.0 if side > 0.0 else -1.0)
+    length = np.sqrt(nx * nx + ny * ny + nz * nz)
+    texel = np.sqrt(ax * ax + ay * ay + az * az)
+    return gap > beside * texel * length
 
 
 @jit.kernel
@@ -529,7 +581,10 @@ def _lookup(lp, mats, ortho, scale, depths, face_view, single, res, x, y, z,
         ln = np.sqrt(fx * fx + fy * fy + fz * fz)
     h0 = nx * (y0x - qx) + ny * (y0y - qy) + nz * (y0z - qz)
     den = (nx * fx + ny * fy + nz * fz) / ln
-    return d, h0 + d * den > bias * abs(den)
+    if not h0 + d * den > bias * abs(den):
+        return d, False
+    return d, not _beside_occluder(depths[view], res, mat, ortho[view], s, lp, ix, iy, d,
+                                   qx, qy, qz, BESIDE_TEXELS)
 
 
 @jit.kernel

@@ -36,6 +36,10 @@ REFINE = 2  # a failing block is read again as its sub-blocks 2 and then 4 level
 # wall's edge, docs/decisions.md)
 OFFSET_TEXELS = 1.5
 BIAS_TEXELS = 0.001
+# A receiver this many texels on the light's side of an occluder's plane is not shaded by it
+# (_beside_occluder): a plane rebuilt from one-texel differences is good to a small fraction
+# of a texel on a flat surface
+BESIDE_TEXELS = 0.02
 # Source kinds (Source.kind), shared with kernels/direct.py
 HARD, SPHERE, RECTANGLE, ELLIPSE, CONE = 0, 1, 2, 3, 4
 
@@ -313,8 +317,53 @@ def _lookup(shadow: ShadowMap, x: np.ndarray, p_off: np.ndarray, n: np.ndarray,
         near = ok & (d < dist[sel] - bias[sel])
         # the occluder d along the ray: in front of the receiver's plane by the bias (behind
         # it, it cannot stand between the receiver and any light it sees)
-        blocked[sel] = near & (h0 + np.where(near, d, 0.0) * den > bias[sel] * np.abs(den))
+        hit = near & (h0 + np.where(near, d, 0.0) * den > bias[sel] * np.abs(den))
+        k = np.nonzero(hit)[0]
+        if k.size:  # and the receiver behind the occluder's own plane (_beside_occluder)
+            hit[k] = ~_beside_occluder(view, depth, ix[k], iy[k], d[k], y0[k], f[k] / length[k, None],
+                                       p_off[sel][k], light.position)
+        blocked[sel] = hit
     return depth_out, blocked
+
+
+def _texel_ray(view, res: int, ix, iy) -> tuple[np.ndarray, np.ndarray]:
+    """Origin and unit direction (N, 3) of the ray through texel (ix, iy)'s centre of a view
+    (an ortho view's origin on its eye plane; a perspective view's, the eye)."""
+    m = np.asarray(view.view, np.float64)
+    rot = m[:3, :3]
+    scale = view.half_extent if view.ortho else view.tan_half
+    uc = (ix + 0.5) / res * 2.0 - 1.0
+    vc = 1.0 - (iy + 0.5) / res * 2.0
+    if view.ortho:
+        y0 = (np.c_[uc * scale, vc * scale, np.zeros(uc.size)] - m[:3, 3]) @ rot
+        return y0, np.broadcast_to(-rot[2], y0.shape)
+    f = np.c_[uc * scale, vc * scale, -np.ones(uc.size)] @ rot
+    eye = -m[:3, 3] @ rot
+    return np.broadcast_to(eye, f.shape), f / np.linalg.norm(f, axis=1, keepdims=True)
+
+
+def _beside_occluder(view, depth, ix, iy, d, y0, f, p, eye) -> np.ndarray:
+    """Whether receivers ``p`` (N, 3) lie on the light's side of the plane of the occluder
+    seen at texel (ix, iy) (depth d along the ray y0 + t f), by over BESIDE_TEXELS of a
+    texel: the plane from the texel and its neighbours' depths one texel across (_slope's
+    sides), rebuilt in 3D. Such an occluder, locally flat, cannot cut a segment from the
+    receiver to any point of the light on that side: a wall seen beside a receiver near its
+    foot (a room's corner) does not shade it, as the tap's depth alone said it did."""
+    res = depth.shape[0]
+    w = y0 + d[:, None] * f
+    tangents = []
+    for ax, (sx, sy) in ((1, (1, 0)), (0, (0, 1))):
+        g = _slope(depth, ix, iy, ax)
+        o, fn = _texel_ray(view, res, ix + sx, iy + sy)  # (may lie past the map's edge)
+        tangents.append(o + (d + g)[:, None] * fn - w)
+    nrm = np.cross(tangents[0], tangents[1])
+    light = -f if view.ortho else eye - w
+    side = np.sign(np.einsum("ij,ij->i", nrm, light))
+    length = np.linalg.norm(nrm, axis=1)
+    texel = np.linalg.norm(tangents[0], axis=1)
+    gap = side * np.einsum("ij,ij->i", nrm, p - w)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return (side != 0) & (gap > BESIDE_TEXELS * texel * length)
 
 
 def _receivers(shadow: ShadowMap, positions: np.ndarray, normals: np.ndarray):
