@@ -823,6 +823,7 @@ def _pcss(lp, mats, ortho, scale, depths, face_view, single, res, sun, round_, s
         return hard
     # direct._tap_weights: each stratum's form factor (the sun's: equal)
     ax, ay, az = uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx
+    umbra = hard <= 0.0  # direct._soft: then a tap past every surface counts as blocked
     seen = 0.0
     total = 0.0
     for k in range(FILTER_SIDE * FILTER_SIDE):
@@ -839,16 +840,18 @@ def _pcss(lp, mats, ortho, scale, depths, face_view, single, res, sun, round_, s
             w = (abs(dx * ax + dy * ay + dz * az) * max(dx * nx + dy * ny + dz * nz, 0.0)
                  / max(d2 * d2, 1e-300))
         total += w
-        if not _lookup(lp, mats, ortho, scale, depths, face_view, single, res, x, y, z,
-                       qx, qy, qz, nx, ny, nz, dist, bias)[1]:
+        dep, blocked = _lookup(lp, mats, ortho, scale, depths, face_view, single, res, x, y, z,
+                               qx, qy, qz, nx, ny, nz, dist, bias)
+        if not (blocked or (umbra and dep == np.inf)):
             seen += w
     if not total > 0.0:  # no stratum faces the receiver: equal weights
         seen = 0.0
         for k in range(FILTER_SIDE * FILTER_SIDE):
             x, y, z = _tap(k, FILTER_SIDE, sa, sb, round_, ux, uy, uz, vx, vy, vz, s, sun,
                            lp, qx, qy, qz)
-            if not _lookup(lp, mats, ortho, scale, depths, face_view, single, res, x, y, z,
-                           qx, qy, qz, nx, ny, nz, dist, bias)[1]:
+            dep, blocked = _lookup(lp, mats, ortho, scale, depths, face_view, single, res,
+                                   x, y, z, qx, qy, qz, nx, ny, nz, dist, bias)
+            if not (blocked or (umbra and dep == np.inf)):
                 seen += 1.0
         total = FILTER_SIDE * FILTER_SIDE
     return seen / total

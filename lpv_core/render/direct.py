@@ -294,24 +294,12 @@ def _lookup(shadow: ShadowMap, x: np.ndarray, p_off: np.ndarray, n: np.ndarray,
         sel = np.nonzero(view_of == i)[0]
         if sel.size == 0:
             continue
-        m = np.asarray(view.view, np.float64)
-        scale = view.half_extent if view.ortho else view.tan_half
         ok = inside[sel] if single else front[sel]
         ix, iy = ix_all[sel], iy_all[sel]
-        uc = (ix + 0.5) / res * 2.0 - 1.0
-        vc = 1.0 - (iy + 0.5) / res * 2.0
-        rot = m[:3, :3]
-        if view.ortho:
-            y0 = (np.c_[uc * scale, vc * scale, np.zeros(sel.size)] - m[:3, 3]) @ rot
-            f = np.broadcast_to(-rot[2], y0.shape)
-            length = np.ones(sel.size)
-        else:
-            y0 = np.broadcast_to(light.position, (sel.size, 3))
-            f = np.c_[uc * scale, vc * scale, -np.ones(sel.size)] @ rot
-            length = np.sqrt(np.einsum("ij,ij->i", f, f))
+        y0, f = _texel_ray(view, res, ix, iy, light.position)
         nn = n[sel]
         h0 = np.einsum("ij,ij->i", nn, y0 - p_off[sel])
-        den = np.einsum("ij,ij->i", nn, f) / length
+        den = np.einsum("ij,ij->i", nn, f)
         d = depth[iy, ix].astype(np.float64)
         depth_out[sel] = np.where(ok, d, np.inf)
         near = ok & (d < dist[sel] - bias[sel])
@@ -320,15 +308,15 @@ def _lookup(shadow: ShadowMap, x: np.ndarray, p_off: np.ndarray, n: np.ndarray,
         hit = near & (h0 + np.where(near, d, 0.0) * den > bias[sel] * np.abs(den))
         k = np.nonzero(hit)[0]
         if k.size:  # and the receiver behind the occluder's own plane (_beside_occluder)
-            hit[k] = ~_beside_occluder(view, depth, ix[k], iy[k], d[k], y0[k], f[k] / length[k, None],
+            hit[k] = ~_beside_occluder(view, depth, ix[k], iy[k], d[k], y0[k], f[k],
                                        p_off[sel][k], light.position)
         blocked[sel] = hit
     return depth_out, blocked
 
 
-def _texel_ray(view, res: int, ix, iy) -> tuple[np.ndarray, np.ndarray]:
+def _texel_ray(view, res: int, ix, iy, eye) -> tuple[np.ndarray, np.ndarray]:
     """Origin and unit direction (N, 3) of the ray through texel (ix, iy)'s centre of a view
-    (an ortho view's origin on its eye plane; a perspective view's, the eye)."""
+    (an ortho view's origin on its eye plane; a perspective view's, the light's ``eye``)."""
     m = np.asarray(view.view, np.float64)
     rot = m[:3, :3]
     scale = view.half_extent if view.ortho else view.tan_half
@@ -338,8 +326,8 @@ def _texel_ray(view, res: int, ix, iy) -> tuple[np.ndarray, np.ndarray]:
         y0 = (np.c_[uc * scale, vc * scale, np.zeros(uc.size)] - m[:3, 3]) @ rot
         return y0, np.broadcast_to(-rot[2], y0.shape)
     f = np.c_[uc * scale, vc * scale, -np.ones(uc.size)] @ rot
-    eye = -m[:3, 3] @ rot
-    return np.broadcast_to(eye, f.shape), f / np.linalg.norm(f, axis=1, keepdims=True)
+    f /= np.linalg.norm(f, axis=1, keepdims=True)
+    return np.broadcast_to(np.asarray(eye, np.float64), f.shape), f
 
 
 def _beside_occluder(view, depth, ix, iy, d, y0, f, p, eye) -> np.ndarray:
@@ -354,7 +342,7 @@ def _beside_occluder(view, depth, ix, iy, d, y0, f, p, eye) -> np.ndarray:
     tangents = []
     for ax, (sx, sy) in ((1, (1, 0)), (0, (0, 1))):
         g = _slope(depth, ix, iy, ax)
-        o, fn = _texel_ray(view, res, ix + sx, iy + sy)  # (may lie past the map's edge)
+        o, fn = _texel_ray(view, res, ix + sx, iy + sy, eye)  # (may lie past the map's edge)
         tangents.append(o + (d + g)[:, None] * fn - w)
     nrm = np.cross(tangents[0], tangents[1])
     light = -f if view.ortho else eye - w
@@ -718,8 +706,11 @@ def _soft(shadow: ShadowMap, src: Source, positions, normals, face_of, p_off, di
     k = FILTER_SIDE * FILTER_SIDE
     x = _taps(src, ortho, c, p_off[todo], u[todo], v[todo], s, FILTER_SIDE, sa[todo], sb[todo])
     rep = lambda arr: np.repeat(arr[todo], k, axis=0)
-    _, blocked = _lookup(shadow, x.reshape(-1, 3), rep(p_off), rep(normals), rep(dist),
-                         rep(bias))
+    depth, blocked = _lookup(shadow, x.reshape(-1, 3), rep(p_off), rep(normals), rep(dist),
+                             rep(bias))
+    # a receiver in the hard filter's umbra counts a tap that sees past every surface (beyond
+    # a closed shell's silhouette) as blocked: the light's far side lies behind the same shell
+    blocked |= np.isinf(depth) & rep(hard <= 0.0)
     w = _tap_weights(src, ortho, c, positions[todo], normals[todo], u[todo], v[todo],
                      FILTER_SIDE, sa[todo], sb[todo])
     vis[todo] = (w * ~blocked.reshape(-1, k)).sum(axis=1) / w.sum(axis=1)  # exact 0 and 1
