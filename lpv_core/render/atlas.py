@@ -13,17 +13,20 @@ import numpy as np
 
 from .raster import HASHED_ALPHA
 
+# HASHED 0 (no triangle with a coverage below 1, Rasterizer.hashed): the coverage's inputs
+# and hash left out, which cost the World's 64 maps 12 -> 23 ms on llvmpipe (tools.bench --world)
 VERTEX_SHADER = """
-#version 330
 uniform vec2 tiles;  // tiles per row, rows
 in vec3 in_pos;
 in float in_recv;  // raster.VERTEX_SHADER's code: bit 2, casts no shadow (left out)
+#if HASHED
 in float in_alpha;  // coverage (raster.HASHED_ALPHA)
 in vec2 in_uv;
 in float in_layer;
 flat out float v_alpha;
 flat out float v_layer;
 out vec2 v_uv;
+#endif
 in vec4 c0;  // columns of the instance's view_proj (on origin-relative positions)
 in vec4 c1;
 in vec4 c2;
@@ -41,23 +44,38 @@ void main() {
     gl_ClipDistance[3] = c.w + c.y;
     v_depth = -(dot(row.xyz, in_pos) + row.w);
     c.xy = ((c.xy + c.w) * 0.5 + tile * c.w) / tiles * 2.0 - c.w;
+#if HASHED
     v_alpha = in_alpha;
     v_layer = in_layer;
     v_uv = in_uv;
+#endif
     gl_Position = (int(in_recv + 0.5) & 4) != 0 ? vec4(0.0, 0.0, 2.0, 1.0) : c;
 }
 """
 
 FRAGMENT_SHADER = """
-#version 330
+#if HASHED
 """ + HASHED_ALPHA + """
+#endif
 in float v_depth;
 out float o_depth;
 void main() {
+#if HASHED
     if (hashed_out()) discard;
+#endif
     o_depth = v_depth;
 }
 """
+
+# the vertex buffer's fields each variant reads (raster.VERTEX_FLOATS a vertex)
+_LAYOUTS = {True: ("3f 36x 1f 1f 4x 2f 1f", "in_pos", "in_recv", "in_alpha", "in_uv",
+                   "in_layer"),
+            False: ("3f 36x 1f 20x", "in_pos", "in_recv")}
+
+
+def _header(hashed: bool) -> str:
+    return f"#version 330\n#define HASHED {int(hashed)}\n"
+
 
 _CLIP_DISTANCE0 = 0x3000  # GL_CLIP_DISTANCE0
 
@@ -67,8 +85,9 @@ class DepthAtlas:
 
     def __init__(self, raster):
         self.raster = raster
-        self.program = raster.ctx.program(vertex_shader=VERTEX_SHADER,
-                                          fragment_shader=FRAGMENT_SHADER)
+        self.programs = {h: raster.ctx.program(vertex_shader=_header(h) + VERTEX_SHADER,
+                                                fragment_shader=_header(h) + FRAGMENT_SHADER)
+                         for h in (True, False)}
         self._fbo: tuple | None = None  # (size, framebuffer)
 
     def render(self, views: list, resolution: int) -> np.ndarray:
@@ -105,18 +124,19 @@ class DepthAtlas:
                 inst[i, 16:20] = view[2]
                 inst[i, 20:] = (i // ny, i % ny)
             buf = ctx.buffer(inst.tobytes())
-            vao = ctx.vertex_array(self.program, [(vbo, "3f 36x 1f 1f 4x 2f 1f", "in_pos",
-                                                   "in_recv", "in_alpha", "in_uv",
-                                                   "in_layer"),
-                                                  (buf, "4f 4f 4f 4f 4f 2f/i", "c0", "c1",
-                                                   "c2", "c3", "row", "tile")])
-            self.program["tiles"].value = (float(nx), float(ny))
-            self.program["seed"].value, self.program["samples"].value = 0, 1
-            if raster._alpha_maps is not None:
-                from .raster import ALPHA_MAP_UNIT
+            hashed = raster.hashed
+            program = self.programs[hashed]
+            vao = ctx.vertex_array(program, [(vbo, *_LAYOUTS[hashed]),
+                                             (buf, "4f 4f 4f 4f 4f 2f/i", "c0", "c1", "c2",
+                                              "c3", "row", "tile")])
+            program["tiles"].value = (float(nx), float(ny))
+            if hashed:
+                program["seed"].value, program["samples"].value = 0, 1
+                if raster._alpha_maps is not None:
+                    from .raster import ALPHA_MAP_UNIT
 
-                raster._alpha_maps.use(location=ALPHA_MAP_UNIT)
-                self.program["alpha_maps"].value = ALPHA_MAP_UNIT
+                    raster._alpha_maps.use(location=ALPHA_MAP_UNIT)
+                    program["alpha_maps"].value = ALPHA_MAP_UNIT
             ctx.disable(moderngl.DEPTH_TEST)
             ctx.disable(moderngl.CULL_FACE)
             ctx.enable(moderngl.BLEND)
@@ -140,4 +160,5 @@ class DepthAtlas:
         if self._fbo is not None:
             self._fbo[1].release()
             self._fbo = None
-        self.program.release()
+        for program in self.programs.values():
+            program.release()

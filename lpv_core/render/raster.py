@@ -349,6 +349,7 @@ class Rasterizer:
         self._vao = None
         self._rsm_vao = None
         self._alpha_maps = None  # the coverage's texture array (_upload_alpha_maps)
+        self.hashed = False  # a triangle's coverage is below 1 or has an alpha map (upload)
         self._normal_maps = None  # the normal maps' texture array (_upload_normal_maps)
         self._array_keys: dict = {}  # what each texture array was made of (_texture_array)
         self._vbo = None
@@ -412,6 +413,9 @@ class Rasterizer:
         if hidden is not None:
             data[..., 12] += 2.0 * np.asarray(hidden, np.float32).reshape(-1, 1)
         data[..., 13] = 1.0 if alpha is None else np.asarray(alpha, np.float32).reshape(-1, 1)
+        # whether any fragment may be hashed out (render/atlas.py draws opaque scenes without)
+        self.hashed = bool(alpha_maps is not None or (alpha is not None and
+                                                      (np.asarray(alpha) < 1.0).any()))
         data[..., 14] = 0.0 if translucency is None else np.asarray(
             translucency, np.float32).reshape(-1, 1)
         data[..., 15:17] = 0.0
