@@ -33,10 +33,11 @@ PACKAGES = ("lpv_core", "lpv_addon")
 # curve-like objects taken once and the Displacement note about 105 more (21,258 then); the
 # sliver pixels' border samples through a cropped camera about 70 more (21,368 then); the
 # shadow taps' occluder planes (thin walls' edges, cube seams) about 110 more (21,479 then); the
-# soft taps' test of the occluder's own plane (a room's corners) about 110 more (21,591 then). The
+# soft taps' test of the occluder's own plane (a room's corners) about 110 more (21,591 then);
+# the umbra's empty soft taps and the atlas's opaque variant about 20 more (21,610 then). The
 # cap catches duplicated code growing back; raise it only for new behaviour, by what that
 # behaviour measures.
-ZIP_PYTHON_LINES = 21_600
+ZIP_PYTHON_LINES = 21_650
 
 
 def _module_name(path: Path) -> str:
