@@ -13,8 +13,8 @@ import numpy as np
 
 from .raster import HASHED_ALPHA
 
-# HASHED 0 (no triangle with a coverage below 1, Rasterizer.hashed): the coverage's inputs
-# and hash left out, which cost the World's 64 maps 12 -> 23 ms on llvmpipe (tools.bench --world)
+# HASHED 0 draws a scene with no coverage below 1 and no alpha map (Rasterizer.hashed) without
+# the coverage's inputs and hash: about half the maps' cost on llvmpipe (docs/decisions.md)
 VERTEX_SHADER = """
 uniform vec2 tiles;  // tiles per row, rows
 in vec3 in_pos;
