@@ -13,25 +13,35 @@ from lpv_core.scene import Material, lights, make_scene
 from tools.core_scenes import box_triangles, quad
 
 
-def _raster(tris: np.ndarray) -> Rasterizer:
+def _raster(tris: np.ndarray, alpha=None) -> Rasterizer:
     r = Rasterizer()
     n = np.broadcast_to(np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])[:, None],
                         tris.shape).copy()
-    r.upload(tris, n, np.ones((len(tris), 3)), np.ones((len(tris), 3)), origin=[0.3, -0.2, 0.1])
+    r.upload(tris, n, np.ones((len(tris), 3)), np.ones((len(tris), 3)), origin=[0.3, -0.2, 0.1],
+             alpha=alpha)
     return r
+
+
+Z0 = 0.5  # the square's height
+
+
+def _square_and_views():
+    """A 2 x 2 m square at z = Z0 and the views of 11 of the 12 of 32 directions more than
+    15 degrees above it, their windows on the square."""
+    tris = quad([-1, -1, Z0], [1, -1, Z0], [1, 1, Z0], [-1, 1, Z0])
+    d = quadrature_directions(32)
+    suns = sky.suns(d[d[:, 2] > np.sin(np.radians(15))][:11])
+    bounds = (np.array([-2.0, -2, -1]), np.array([2.0, 2, 2]))
+    fit = (np.array([-1.2, -1.2, 0.4]), np.array([1.2, 1.2, 0.6]))
+    return tris, [lights.light_views(s, bounds, fit)[0] for s in suns]
 
 
 def test_each_tile_holds_the_depth_of_the_plane_its_texels_see():
     """A 2 x 2 m square at z = 0.5 seen from 11 of the 12 of 32 directions more than 15 degrees
     above it (one tile each, a 4 x 3 atlas with one tile empty): texels whose centre's ray meets the square away from its edges hold
     -(view @ hit).z (1e-5 m), those missing it by more than a texel inf."""
-    z0, res = 0.5, 48
-    tris = quad([-1, -1, z0], [1, -1, z0], [1, 1, z0], [-1, 1, z0])
-    d = quadrature_directions(32)
-    suns = sky.suns(d[d[:, 2] > np.sin(np.radians(15))][:11])
-    bounds = (np.array([-2.0, -2, -1]), np.array([2.0, 2, 2]))
-    fit = (np.array([-1.2, -1.2, 0.4]), np.array([1.2, 1.2, 0.6]))  # windows on the square
-    views = [lights.light_views(s, bounds, fit)[0] for s in suns]
+    res = 48
+    tris, views = _square_and_views()
     got = atlas.DepthAtlas(_raster(tris)).render(views, res)
     assert got.shape == (11, res, res)
     c = (np.arange(res) + 0.5) / res * 2 - 1
@@ -40,7 +50,7 @@ def test_each_tile_holds_the_depth_of_the_plane_its_texels_see():
         u, v = np.meshgrid(c * view.half_extent, -c * view.half_extent)  # rows top-first
         start = (inv[:3, :3] @ np.stack([u, v, np.zeros_like(u)]).reshape(3, -1)).T + inv[:3, 3]
         ray = -inv[:3, 2]
-        t = (z0 - start[:, 2]) / ray[2]
+        t = (Z0 - start[:, 2]) / ray[2]
         hit = start + t[:, None] * ray
         depth = -(np.c_[hit, np.ones(len(hit))] @ view.view[2]).reshape(res, res)
         texel = 2 * view.half_extent / res / abs(ray[2])
@@ -54,22 +64,16 @@ def test_each_tile_holds_the_depth_of_the_plane_its_texels_see():
 def test_a_squares_coverage_is_the_share_of_its_texels_each_tile_holds():
     """The square of the test above at Alpha 0.3, 0.7 and 1 (Material.alpha per triangle): the
     hashed coverage keeps that share of the texels inside it (over the 11 tiles' ~4,000
-    texels within 0.02; a tile's ~400 within 0.08, 3.5 binomial deviations), so the World's maps shade by it as Cycles' transparent shadows; an opaque scene's
-    maps are drawn without the hash (Rasterizer.hashed) and hold every texel."""
-    z0, res = 0.5, 48
-    tris = quad([-1, -1, z0], [1, -1, z0], [1, 1, z0], [-1, 1, z0])
-    d = quadrature_directions(32)
-    suns = sky.suns(d[d[:, 2] > np.sin(np.radians(15))][:11])
-    bounds = (np.array([-2.0, -2, -1]), np.array([2.0, 2, 2]))
-    fit = (np.array([-1.2, -1.2, 0.4]), np.array([1.2, 1.2, 0.6]))
-    views = [lights.light_views(s, bounds, fit)[0] for s in suns]
+    texels within 0.02; a tile's ~400 within 0.08, 3.5 binomial deviations), so the World's
+    maps shade by it as Cycles' transparent shadows; an opaque scene's maps are drawn without
+    the hash (Rasterizer.hashed) and hold every texel."""
+    res = 48
+    tris, views = _square_and_views()
     opaque = atlas.DepthAtlas(_raster(tris)).render(views, res)
     inside = np.isfinite(opaque)
     assert inside.sum() > 11 * 300
     for alpha in (0.3, 0.7, 1.0):
-        r = Rasterizer()
-        n = np.broadcast_to([0.0, 0.0, 1.0], tris.shape).copy()
-        r.upload(tris, n, np.ones((2, 3)), np.ones((2, 3)), alpha=np.full(2, alpha))
+        r = _raster(tris, np.full(len(tris), alpha))
         assert r.hashed == (alpha < 1.0)
         got = atlas.DepthAtlas(r).render(views, res)
         assert not np.isfinite(got[~inside]).any()

@@ -97,7 +97,8 @@ def test_no_light_through_a_closed_rooms_walls_up_to_its_edges(kind, compiled):
 # (outside lamp, softness: sun angle or point radius) -> the most of its light reaching the
 # room's inner edges. The low and high suns' taps beyond the shell's silhouette are taken for
 # blockers in the hard filter's umbra (11-24 % passed before); the sun from below and the
-# point light still pass up to 13 %: taps that land on the shell's far side (decisions.md).
+# point light still pass up to 13 %: taps at the blockers' mean depth miss the receiver's
+# own neighbouring wall, and taps read the shell's far side (decisions.md).
 SOFT_OUTSIDE = {("sun_low", 0.1): 0.03, ("sun_low", 0.3): 0.03, ("sun_high", 0.3): 0.04,
                 ("sun_below", 0.3): 0.15, ("point", 0.25): 0.15}
 
