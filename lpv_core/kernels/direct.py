@@ -364,6 +364,7 @@ def _pcf(mat, ortho, scale, depth, res, qx, qy, qz, d, bias, planes):  # pragma:
     tx, ty = fx - bx, fy - by
     x0, y0 = int(bx), int(by)
     acc = 0.0
+    lit = 0  # bit k: tap k (dx + 2 dy) passes
     for dy in range(2):
         wy = ty if dy else 1.0 - ty
         ys = min(max(y0 + dy, 0), res - 1)
@@ -373,7 +374,33 @@ def _pcf(mat, ortho, scale, depth, res, qx, qy, qz, d, bias, planes):  # pragma:
             t = _plane_depth(depth, res, xs, ys, fx - xs, fy - ys) if planes else depth[ys, xs]
             if d <= t + bias:
                 acc += wx * wy
+                lit |= 1 << (dx + 2 * dy)
+    if planes and 0 < lit < 15 and _in_crease(depth, res, x0, y0, lit, bias):
+        return 0.0
     return acc
+
+
+@jit.kernel
+def _in_crease(depth, res, x0, y0, lit, tol):  # pragma: no cover
+    """direct._in_crease of one receiver whose 2x2 taps from (x0, y0) pass where ``lit``'s
+    bits are set."""
+    for i in range(4):
+        if not lit & (1 << i):
+            continue
+        xi, yi = min(max(x0 + (i & 1), 0), res - 1), min(max(y0 + (i >> 1), 0), res - 1)
+        for j in range(4):
+            if lit & (1 << j):
+                continue
+            xj, yj = min(max(x0 + (j & 1), 0), res - 1), min(max(y0 + (j >> 1), 0), res - 1)
+            if xi == xj and yi == yj:
+                continue
+            ci, cj = np.float64(depth[yi, xi]), np.float64(depth[yj, xj])
+            if not (np.isfinite(ci) and np.isfinite(cj)):
+                continue
+            if (_plane_depth(depth, res, xj, yj, xi - xj, yi - yj) > ci + tol
+                    and _plane_depth(depth, res, xi, yi, xj - xi, yj - yi) > cj + tol):
+                return True
+    return False
 
 
 @jit.kernel

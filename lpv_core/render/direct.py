@@ -440,6 +440,27 @@ def _plane_depth(depth: np.ndarray, xs, ys, ox, oy) -> np.ndarray:
     return out
 
 
+def _in_crease(depth: np.ndarray, taps: list, tol: np.ndarray) -> np.ndarray:
+    """Per receiver: a tap it passes and a tap that blocks it hold two surfaces meeting in a
+    crease that opens towards the light (each one's plane lies behind the other's texel: a
+    wall standing on a floor seen from outside), so the receiver lies behind the blocking
+    one, whose plane is the nearer where they meet: it is in shadow. Without this, the
+    bilinear taps of a receiver inside a room of single faces, by a wall whose outside
+    ground is its own floor's plane, read the ground beyond the wall and pass light."""
+    out = np.zeros(tol.shape, bool)
+    for i, (xi, yi, li) in enumerate(taps):
+        for j, (xj, yj, lj) in enumerate(taps):
+            pair = li & ~lj & ((xi != xj) | (yi != yj))
+            if i == j or not pair.any():
+                continue
+            ci, cj = depth[yi, xi].astype(np.float64), depth[yj, xj].astype(np.float64)
+            with np.errstate(invalid="ignore"):
+                behind_i = _plane_depth(depth, xj, yj, xi - xj, yi - yj) > ci + tol
+                behind_j = _plane_depth(depth, xi, yi, xj - xi, yj - yi) > cj + tol
+            out |= pair & np.isfinite(ci) & np.isfinite(cj) & behind_i & behind_j
+    return out
+
+
 def _hard(shadow: ShadowMap, face_of, p_off, dist, bias) -> np.ndarray:
     """2x2 bilinear percentage-closer filtering of each offset receiver in its view, each
     tap against its texel's occluder plane (_plane_depth; with shadow.planes)."""
@@ -466,6 +487,7 @@ def _hard(shadow: ShadowMap, face_of, p_off, dist, bias) -> np.ndarray:
         tx = fx - x0
         ty = fy - y0
         acc = np.zeros(sel.size)
+        taps = []
         for dy, wy in ((0, 1.0 - ty), (1, ty)):
             for dx, wx in ((0, 1.0 - tx), (1, tx)):
                 xs = np.clip(x0 + dx, 0, res - 1)
@@ -473,7 +495,11 @@ def _hard(shadow: ShadowMap, face_of, p_off, dist, bias) -> np.ndarray:
                 # the tap's occluder plane at the receiver (_plane_depth)
                 t = (_plane_depth(depth, xs, ys, fx - xs, fy - ys) if shadow.planes
                      else depth[ys, xs])
-                acc += wx * wy * (d <= t + bias[sel])
+                lit = d <= t + bias[sel]
+                acc += wx * wy * lit
+                taps.append((xs, ys, lit))
+        if shadow.planes:
+            acc = np.where(_in_crease(depth, taps, bias[sel]), 0.0, acc)
         inside = (np.abs(u) <= 1.0) & (np.abs(v) <= 1.0)
         vis[sel] = np.where(inside, acc, 1.0)
     return vis
