@@ -99,7 +99,7 @@ def test_no_light_through_a_closed_rooms_walls_up_to_its_edges(kind, compiled):
 # outside lamp -> the most of its light reaching the inner edges of the room standing on a
 # ground (40 m across: 4.2 cm texels, 7x the room's alone). A receiver by a wall's foot sees
 # through its bilinear taps the ground outside, in its own floor's plane: the wall and the
-# ground meet in a crease open to the lamp, so the wall's tap decides (sun_high passed 5.5 %
+# ground meet in a crease open to the lamp, so the wall's tap decides (sun_high passed 5.1 %
 # before). What is left lies under the roof's edge, whose texels beyond show the far ground.
 GROUND = {"point": 2e-3, "sun_below": 1e-4, "sun_high": 6e-3, "sun_low": 5e-3}
 
