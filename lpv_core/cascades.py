@@ -35,6 +35,19 @@ SINGLE_TRIANGLE_TAIL = (1.0 + np.sqrt(3.0)) / 2.0
 FENCE_IQR = 1.5
 
 
+def facing_into(positions: np.ndarray, normals: np.ndarray, lo, hi) -> np.ndarray:
+    """(N,) bool: the points whose normal faces into the LPV box [lo, hi] from where they lie
+    (a flat box's thin axis aside). Light a surface sends out of the box meets nothing there
+    (the box bounds the geometry, or it is the closed space around the camera): the lit sides
+    of a closed room's outer walls and roof are left out, which the grid, a cell wide, could
+    not keep apart from the inner sides."""
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    tol = 1e-6 * max(float(np.max(hi - lo)), 1e-30)
+    ahead = np.asarray(positions, np.float64) + np.asarray(normals, np.float64) * tol
+    ok = ((hi - lo) <= 2 * tol) | ((ahead >= lo) & (ahead <= hi))
+    return ok[:, 0] & ok[:, 1] & ok[:, 2]
+
+
 def fit_bounds(scene) -> tuple[np.ndarray, np.ndarray, int, float]:
     """Box (lo, hi) the outer cascade is fitted to, the number of triangles left outside it and
     their share of the surface area.

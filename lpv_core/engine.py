@@ -10,7 +10,7 @@ from __future__ import annotations
 import hashlib
 import operator
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -520,6 +520,13 @@ class Engine:
                                         scene.settings, stats)
         else:
             rsm, sample = self._rsm(light, bounds, res, stats)
+        facing = _facing_into(rsm, bounds, light, stats)
+        if facing is not rsm:
+            rsm, sample = facing, _vpl_sample(facing)
+        if rsm.count == 0:  # it lights only sides facing out of the LPV box: no propagation
+            totals = [g.zeros(propagation.coefficients(scene.settings.angular)) for g in chain]
+            self._lights[light.name] = LightGrids(light_key(light), totals, sample, None, res)
+            return totals, sample, 0
         entry = self._lights.get(light.name)
         if cached is not None and entry is not None and same_vpls(entry.flux, rsm.flux):
             stats.skip("injection", f"light '{light.name}'",
@@ -831,6 +838,24 @@ class _ChainRun:
             carry = prop.outflow
         coefficients = propagation.coefficients(settings.angular)
         return [g.zeros(coefficients) if t is None else t for g, t in zip(chain, totals)]
+
+
+def _facing_into(rsm, bounds, light, stats: Stats):
+    """The RSM without the VPLs on sides facing out of the LPV box (cascades.facing_into:
+    their light meets nothing, a closed room's sunlit roof and outer walls), how many were
+    left out in the stats (info "vpls_facing_out"; a skip when that is all of them)."""
+    keep = cascades.facing_into(rsm.position, rsm.normal, *bounds)
+    if keep.all():
+        return rsm
+    out = int(keep.size - keep.sum())
+    stats.info.setdefault("vpls_facing_out", {})[light.name] = out
+    if not keep.any():
+        stats.skip("propagation", f"light '{light.name}'",
+                   f"all its {out} VPLs face out of the LPV box (the outside of the closed "
+                   "space around the camera): its light does not reach into it")
+    return replace(rsm, position=rsm.position[keep], normal=rsm.normal[keep],
+                               flux=rsm.flux[keep], area=rsm.area[keep],
+                               lift=None if rsm.lift is None else rsm.lift[keep])
 
 
 def _vpl_sample(rsm) -> tuple[np.ndarray, np.ndarray]:

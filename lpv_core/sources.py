@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import emitters, mirror_lobe, propagation, sky
+from . import cascades, emitters, mirror_lobe, propagation, sky
 from .geometry_volume import MAX_SPLITS, surfels
 from .scene import textures
 from .scene.model import HIDDEN_FROM_CAMERA
@@ -247,15 +247,9 @@ def propagate(engine, scene, src: Source, run, bounds, stats) -> list:
     if glossy is not None and src.kind == "world":
         refl += glossy[tri]
     pos2, nrm2 = np.concatenate([pos, pos]), np.concatenate([nrm, -nrm])
-    # Light leaving the LPV box outward meets nothing (the box bounds the geometry, or the
-    # closed space around the camera): the side a surfel lights must face into the box (a
-    # flat box's thin axis aside); a closed room's outer sides are left out, and not lit.
-    lo, hi = (np.asarray(b, np.float64) for b in bounds)
-    tol = 1e-6 * max(float(np.max(hi - lo)), 1e-30)
-    ahead = pos2 + nrm2 * tol
-    flat = (hi - lo) <= 2 * tol
-    ok = flat | ((ahead >= lo) & (ahead <= hi))
-    inside = np.nonzero(ok[:, 0] & ok[:, 1] & ok[:, 2])[0]  # the sides lit, in order
+    # the sides facing into the LPV box (cascades.facing_into): a closed room's outer sides
+    # are left out, and not lit
+    inside = np.nonzero(cascades.facing_into(pos2, nrm2, *bounds))[0]  # the sides lit, in order
     pos2, nrm2 = pos2[inside], nrm2[inside]
     e = np.zeros((0, 3))
     if inside.size:

@@ -11,11 +11,11 @@ import dataclasses
 import numpy as np
 import pytest
 
-from lpv_core import engine
+from lpv_core import engine, lookup
 from lpv_core.render import direct
 from lpv_core.runtime import jit
 from lpv_core.scene import GISettings
-from lpv_core.scene.model import Light, make_scene
+from lpv_core.scene.model import Camera, Light, make_scene
 from tools.core_scenes import light_matrix, quad
 
 SIZE = np.array([6.0, 5.0, 2.8])
@@ -180,3 +180,34 @@ def test_compiled_twin_follows_the_maps_planes_switch(planes):
         other = direct.visibility(shadow, pos, nrm)
     np.testing.assert_allclose(got, want, atol=1e-9)
     assert np.abs(got - other).max() > 0.5
+
+
+@pytest.mark.parametrize("kind", sorted(OUTSIDE))
+def test_outside_lamps_send_no_gi_into_a_closed_room_on_a_ground(kind):
+    """Camera inside the closed room (the LPV box is the room): the lamps light only the
+    outer sides, whose light leaves the box (cascades.facing_into). Before, the sunlit
+    roof's and walls' VPLs, a cell from the inner sides, lit the room (a high sun of
+    4 W/m^2: mean irradiance 0.03 W/m^2 by the edges, up to 0.47)."""
+    scene = make_scene(_room(ground=True), lights=[OUTSIDE[kind]()], settings=GISettings())
+    scene.camera = Camera.look_at((1.0, 1.0, 1.5), (0.0, 0.0, 1.0))
+    stats = engine.Stats()
+    result = engine.Engine().update(scene, stats)
+    grid = result.grid
+    assert grid.cell_size * grid.resolution < 1.2 * SIZE.max()  # the room's, not the ground's
+    pos, nrm = _near_edges(np.random.default_rng(3), 2000)
+    open_ = direct.irradiance(scene.lights[0], pos, nrm)[:, 0]  # with no walls
+    for g, values, vis in [(grid, result.values, result.visibility), *result.fine]:
+        if values is None:
+            continue
+        e = lookup.irradiance(g, values, lookup.sample_points(g, pos, nrm, result.gaps.get(g)),
+                              nrm, offset_cells=0.0, visibility=vis)
+        # (the point light's RSM sees 4 texels of an inner side along the roof's seam: 2.4e-5;
+        # 0.04-0.28 before)
+        assert e.max() <= 1e-4 * open_.max(), e.max() / open_.max()
+    if kind == "sun_below":  # it lights the ground only, outside the box: no RSM
+        return
+    out = stats.info["vpls_facing_out"]["Sun" if kind.startswith("sun") else "Lamp"]
+    assert stats.info["vpls"] <= 1e-4 * out  # the seam's few
+    if kind.startswith("sun"):  # none left: no propagation, and the stats say why
+        assert any(s["stage"] == "propagation" and "face out of the LPV box" in s["reason"]
+                   for s in stats.skipped)
