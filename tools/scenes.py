@@ -47,6 +47,7 @@ __all__ = [
     "soft_room",
     "sun_yard",
     "sunlit_room",
+    "window_room",
 ]
 
 
@@ -500,6 +501,55 @@ def soft_room(resolution: Sequence[int] = (128, 128), *, shader: str = "DIFFUSE"
     return scene_facts(scene, [area, bulb])
 
 
+def _wall_with_window(y: float, x0: float, x1: float, z1: float,
+                      window: tuple[float, float, float, float]) -> tuple[list, list]:
+    """Single quads of a wall in the plane y from x0 to x1 and 0 to z1 (normals +y), around
+    an open window (wx0, wx1, wz0, wz1)."""
+    wx0, wx1, wz0, wz1 = window
+    rects = [(x0, wx0, 0.0, z1), (wx1, x1, 0.0, z1), (wx0, wx1, 0.0, wz0), (wx0, wx1, wz1, z1)]
+    verts, faces = [], []
+    for a, b, c, d in rects:
+        n = len(verts)
+        verts += [(a, y, c), (a, y, d), (b, y, d), (b, y, c)]
+        faces.append((n, n + 1, n + 2, n + 3))
+    return verts, faces
+
+
+def window_room(resolution: Sequence[int] = (128, 128), *, shader: str = "DIFFUSE",
+                new_file: bool = True) -> dict:
+    """A room modelled the quick way: walls and a roof of single faces (x in [-2.5, 2.5],
+    y in [-2, 2], z in [0, 2.7]) standing on a 30 x 30 m ground plane that is also its
+    floor, a 1.6 x 1.2 m window in the -y wall; lit only by Blender's default Sky Texture
+    (sun 30 deg up, its disc shining in through the window) at Background strength 0.05;
+    a table and a cabinet. Camera inside by the +y wall, looking at the window wall."""
+    scene = new_scene("window_room", resolution, new_file)
+    world, bg = _world(scene, "SkyTexture")
+    sky = world.node_tree.nodes.new("ShaderNodeTexSky")  # default sky type and settings
+    sky.sun_elevation = math.radians(30.0)
+    sky.sun_rotation = math.radians(200.0)
+    world.node_tree.links.new(sky.outputs["Color"], bg.inputs["Color"])
+    bg.inputs["Strength"].default_value = 0.05
+    ground = diffuse_material("Ground", (0.45, 0.42, 0.38), shader)
+    wall = diffuse_material("Wall", (0.78, 0.76, 0.72), shader)
+    wood = diffuse_material("Wood", (0.55, 0.40, 0.25), shader)
+    plane = ([(-15.0, -15.0, 0.0), (15.0, -15.0, 0.0), (15.0, 15.0, 0.0), (-15.0, 15.0, 0.0)],
+             [(0, 1, 2, 3)])
+    add_mesh_object(scene, "Ground", plane, ground)
+    lo, hi = (-2.5, -2.0, 0.0), (2.5, 2.0, 2.7)
+    add_mesh_object(scene, "Walls", box_geometry(lo, hi, ["+z", "-x", "+x", "+y"],
+                                                 inward=True), wall)
+    add_mesh_object(scene, "WindowWall", _wall_with_window(-2.0, -2.5, 2.5, 2.7,
+                                                           (-0.8, 0.8, 0.8, 2.0)), wall)
+    legs = [box_geometry((x - 0.03, y - 0.03, 0.0), (x + 0.03, y + 0.03, 0.72))
+            for x in (-0.55, 0.55) for y in (-0.35, 0.35)]
+    table = _merge(box_geometry((-0.6, -0.4, 0.72), (0.6, 0.4, 0.77)), *legs)
+    add_mesh_object(scene, "Table", table, wood, location=(0.3, -0.4, 0.0), rotation_z_deg=10.0)
+    add_mesh_object(scene, "Cabinet", box_geometry((-0.25, -0.6, 0.0), (0.25, 0.6, 1.1)), wood,
+                    location=(-2.2, 0.5, 0.0))
+    add_camera(scene, (1.6, 1.8, 1.6), (-0.3, -1.5, 0.8), lens_mm=16.0)
+    return scene_facts(scene, [])
+
+
 CHECKER = ((0.8, 0.1, 0.1), (0.1, 0.7, 0.1))
 
 
@@ -573,6 +623,7 @@ BUILDERS: dict[str, Callable[..., dict]] = {
     "panel_room": panel_room,
     "soft_room": soft_room,
     "checker_room": checker_room,
+    "window_room": window_room,
 }
 
 # Named scenes of the team (tools/make_references.py): name -> (builder, keyword arguments).
@@ -590,11 +641,12 @@ SCENES: dict[str, tuple[str, dict]] = {
     "sky_yard": ("sky_yard", {}),
     "panel_room": ("panel_room", {}),
     "soft_room": ("soft_room", {}),
+    "window_room": ("window_room", {}),
 }
 # The scenes lit by the World, emitting materials or soft lamps (issue 17's acceptance
 # scenes, tools/sources_check.py); the others are lamp-lit, hard-shadowed, diffuse-only and
 # black-world, as the radiometric calibration and the report need.
-LIGHT_SOURCE_SCENES = ("sky_room", "sky_yard", "panel_room", "soft_room")
+LIGHT_SOURCE_SCENES = ("sky_room", "sky_yard", "panel_room", "soft_room", "window_room")
 
 
 def build(name: str, **kw) -> dict:
