@@ -34,10 +34,11 @@ PACKAGES = ("lpv_core", "lpv_addon")
 # sliver pixels' border samples through a cropped camera about 70 more (21,368 then); the
 # shadow taps' occluder planes (thin walls' edges, cube seams) about 110 more (21,479 then); the
 # soft taps' test of the occluder's own plane (a room's corners) about 110 more (21,591 then);
-# the umbra's empty soft taps and the atlas's opaque variant about 20 more (21,610 then). The
-# cap catches duplicated code growing back; raise it only for new behaviour, by what that
+# the umbra's empty soft taps and the atlas's opaque variant about 20 more (21,610 then); the
+# hard filter's crease test (walls standing on a ground) and the VPLs facing out of the LPV
+# box about 85 more (21,695 then). The cap catches duplicated code growing back; raise it only for new behaviour, by what that
 # behaviour measures.
-ZIP_PYTHON_LINES = 21_650
+ZIP_PYTHON_LINES = 21_750
 
 
 def _module_name(path: Path) -> str:

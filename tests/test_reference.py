@@ -260,7 +260,7 @@ def test_light_source_scene_builders(name):
     strength = world["Background"].inputs["Strength"].default_value
     emitting = [m.name for m in bpy.data.materials if m.users and _emitting(m)]
     lamps = {bpy.data.objects[n].data.type: bpy.data.objects[n].data for n in facts["lights"]}
-    if name in ("sky_room", "sky_yard", "window_room"):
+    if name in ("sky_room", "sky_yard", "window_room", "window_room_thick"):
         assert strength > 0 and not lamps and not emitting
         assert ("ShaderNodeTexSky" in {n.bl_idname for n in world}) == (name != "sky_room")
     elif name == "panel_room":

@@ -516,12 +516,14 @@ def _wall_with_window(y: float, x0: float, x1: float, z1: float,
 
 
 def window_room(resolution: Sequence[int] = (128, 128), *, shader: str = "DIFFUSE",
-                new_file: bool = True) -> dict:
+                new_file: bool = True, wall_thickness: float = 0.0) -> dict:
     """A room modelled the quick way: walls and a roof of single faces (x in [-2.5, 2.5],
     y in [-2, 2], z in [0, 2.7]) standing on a 30 x 30 m ground plane that is also its
     floor, a 1.6 x 1.2 m window in the -y wall; lit only by Blender's default Sky Texture
     (sun 30 deg up, its disc shining in through the window) at Background strength 0.05;
-    a table and a cabinet. Camera inside by the +y wall, looking at the window wall."""
+    a table and a cabinet. Camera inside by the +y wall, looking at the window wall.
+    ``wall_thickness``: the walls and roof given that thickness outward by a Solidify
+    modifier, as an artist would."""
     scene = new_scene("window_room", resolution, new_file)
     world, bg = _world(scene, "SkyTexture")
     sky = world.node_tree.nodes.new("ShaderNodeTexSky")  # default sky type and settings
@@ -538,8 +540,12 @@ def window_room(resolution: Sequence[int] = (128, 128), *, shader: str = "DIFFUS
     lo, hi = (-2.5, -2.0, 0.0), (2.5, 2.0, 2.7)
     add_mesh_object(scene, "Walls", box_geometry(lo, hi, ["+z", "-x", "+x", "+y"],
                                                  inward=True), wall)
-    add_mesh_object(scene, "WindowWall", _wall_with_window(-2.0, -2.5, 2.5, 2.7,
-                                                           (-0.8, 0.8, 0.8, 2.0)), wall)
+    window_wall = add_mesh_object(scene, "WindowWall", _wall_with_window(
+        -2.0, -2.5, 2.5, 2.7, (-0.8, 0.8, 0.8, 2.0)), wall)
+    if wall_thickness > 0:  # a Solidify modifier outward (the faces' normals point in)
+        for obj in (bpy.data.objects["Walls"], window_wall):
+            mod = obj.modifiers.new("Solidify", "SOLIDIFY")
+            mod.thickness, mod.offset = wall_thickness, -1.0
     legs = [box_geometry((x - 0.03, y - 0.03, 0.0), (x + 0.03, y + 0.03, 0.72))
             for x in (-0.55, 0.55) for y in (-0.35, 0.35)]
     table = _merge(box_geometry((-0.6, -0.4, 0.72), (0.6, 0.4, 0.77)), *legs)
@@ -642,11 +648,13 @@ SCENES: dict[str, tuple[str, dict]] = {
     "panel_room": ("panel_room", {}),
     "soft_room": ("soft_room", {}),
     "window_room": ("window_room", {}),
+    "window_room_thick": ("window_room", {"wall_thickness": 0.2}),
 }
 # The scenes lit by the World, emitting materials or soft lamps (issue 17's acceptance
 # scenes, tools/sources_check.py); the others are lamp-lit, hard-shadowed, diffuse-only and
 # black-world, as the radiometric calibration and the report need.
-LIGHT_SOURCE_SCENES = ("sky_room", "sky_yard", "panel_room", "soft_room", "window_room")
+LIGHT_SOURCE_SCENES = ("sky_room", "sky_yard", "panel_room", "soft_room", "window_room",
+                       "window_room_thick")
 
 
 def build(name: str, **kw) -> dict:

@@ -42,6 +42,7 @@ SCENES = {
     "panel_room": (2048, "room"),
     "soft_room": (2048, "room"),
     "window_room": (4096, "room"),
+    "window_room_thick": (4096, "room"),
 }
 DIRECT_TOLERANCE = 0.05
 INDIRECT_LIMIT = {"room": 0.30, "outdoors": 0.35}
