@@ -8,6 +8,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
 
 import numpy as np
@@ -277,7 +278,9 @@ def test_ctrl_c_while_a_frames_record_is_written_keeps_the_record(tmp_path, monk
         real(self, offset, data)
         if b'"frame": 1' in data and not sent:
             sent.append(True)
-            os.kill(os.getpid(), signal.SIGINT)
+            # to the main thread itself: a process-wide signal may land on a kernel's or
+            # the GL driver's thread, and Python then runs the handler only later
+            signal.pthread_kill(threading.main_thread().ident, signal.SIGINT)
 
     monkeypatch.setattr(frames.StatsFile, "_write_at", write_then_ctrl_c)
     job = frames.BatchJob(bpy.context.scene, tmp_path / "out", (1, 3),
