@@ -35,6 +35,10 @@ SINGLE_TRIANGLE_TAIL = (1.0 + np.sqrt(3.0)) / 2.0
 FENCE_IQR = 1.5
 
 
+FACE_SLACK = 1e-6  # of the LPV box's extent: a point this near a face lies on it
+FACING_OUT = 1e-3  # a normal component above this points out through the face
+
+
 def facing_into(positions: np.ndarray, normals: np.ndarray, lo, hi) -> np.ndarray:
     """(N,) bool: the points inside the LPV box [lo, hi] that do not lie on one of its faces
     with their normal pointing out through it (a flat box's thin axis aside). Light a surface
@@ -55,10 +59,6 @@ def facing_into(positions: np.ndarray, normals: np.ndarray, lo, hi) -> np.ndarra
         keep &= (x >= lo[a] - eps) & (x <= hi[a] + eps)
         keep &= ~((x >= hi[a] - eps) & (d > FACING_OUT)) & ~((x <= lo[a] + eps) & (d < -FACING_OUT))
     return keep
-
-
-FACE_SLACK = 1e-6  # of the LPV box's extent: a point this near a face lies on it
-FACING_OUT = 1e-3  # a normal component above this points out through the face
 
 
 def fit_bounds(scene) -> tuple[np.ndarray, np.ndarray, int, float]:

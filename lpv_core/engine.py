@@ -851,11 +851,11 @@ def _facing_into(rsm, bounds, light, stats: Stats):
     stats.info.setdefault("vpls_facing_out", {})[light.name] = out
     if not keep.any():
         stats.skip("propagation", f"light '{light.name}'",
-                   f"all its {out} VPLs face out of the LPV box (the outside of the closed "
-                   "space around the camera): its light does not reach into it")
+                   f"all its {out} VPLs lie on sides facing out of the LPV box (the outside "
+                   "of the closed space around the camera): its light meets nothing in it")
     return replace(rsm, position=rsm.position[keep], normal=rsm.normal[keep],
-                               flux=rsm.flux[keep], area=rsm.area[keep],
-                               lift=None if rsm.lift is None else rsm.lift[keep])
+                   flux=rsm.flux[keep], area=rsm.area[keep],
+                   lift=None if rsm.lift is None else rsm.lift[keep])
 
 
 def _vpl_sample(rsm) -> tuple[np.ndarray, np.ndarray]:

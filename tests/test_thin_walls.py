@@ -209,5 +209,5 @@ def test_outside_lamps_send_no_gi_into_a_closed_room_on_a_ground(kind):
     out = stats.info["vpls_facing_out"]["Sun" if kind.startswith("sun") else "Lamp"]
     assert stats.info["vpls"] <= 1e-4 * out  # the seam's few
     if kind.startswith("sun"):  # none left: no propagation, and the stats say why
-        assert any(s["stage"] == "propagation" and "face out of the LPV box" in s["reason"]
+        assert any(s["stage"] == "propagation" and "facing out of the LPV box" in s["reason"]
                    for s in stats.skipped)

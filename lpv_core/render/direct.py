@@ -450,8 +450,10 @@ def _in_crease(depth: np.ndarray, taps: list, tol: np.ndarray) -> np.ndarray:
     out = np.zeros(tol.shape, bool)
     for i, (xi, yi, li) in enumerate(taps):
         for j, (xj, yj, lj) in enumerate(taps):
+            if i == j:
+                continue
             pair = li & ~lj & ((xi != xj) | (yi != yj))
-            if i == j or not pair.any():
+            if not pair.any():
                 continue
             ci, cj = depth[yi, xi].astype(np.float64), depth[yj, xj].astype(np.float64)
             with np.errstate(invalid="ignore"):
