@@ -283,11 +283,17 @@ def test_ctrl_c_while_a_frames_record_is_written_keeps_the_record(tmp_path, monk
             signal.pthread_kill(threading.main_thread().ident, signal.SIGINT)
 
     monkeypatch.setattr(frames.StatsFile, "_write_at", write_then_ctrl_c)
-    job = frames.BatchJob(bpy.context.scene, tmp_path / "out", (1, 3),
-                          overrides={"grid_resolution": 8, "rsm_resolution": 32,
-                                     "antialias": 1}, in_process=True)
-    with pytest.raises(KeyboardInterrupt):
-        job.run()
+    # Python's own Ctrl-C handler, also where this process inherited SIGINT ignored (started
+    # as a shell's background job), where Ctrl-C could not reach a batch at all
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        job = frames.BatchJob(bpy.context.scene, tmp_path / "out", (1, 3),
+                              overrides={"grid_resolution": 8, "rsm_resolution": 32,
+                                         "antialias": 1}, in_process=True)
+        with pytest.raises(KeyboardInterrupt):
+            job.run()
+    finally:
+        signal.signal(signal.SIGINT, previous)
     assert sent
     stats = json.loads((tmp_path / "out" / "stats.json").read_text())
     assert stats["cancelled"] is True and [f["frame"] for f in stats["frames"]] == [1]
