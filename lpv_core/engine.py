@@ -510,10 +510,8 @@ class Engine:
                      for c, g in enumerate(chain)]
         planner.record(reach[-1], stats, "rsm")
         if not reach[-1].keep:  # reaches no caster at all: no RSM either
-            totals = [g.zeros(propagation.coefficients(scene.settings.angular)) for g in chain]
-            sample = (np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32))
-            self._lights[light.name] = LightGrids(light_key(light), totals, sample, None, res)
-            return totals, sample, 0
+            return self._unlit(scene, light, chain, res,
+                               (np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32)))
         planner.record(reach[:-1], stats, "injection")
         if light.type == "SUN" and len(chain) > 1:
             rsm, sample = self._sun_rsm(light, chain, [d.keep for d in reach], bounds,
@@ -524,9 +522,7 @@ class Engine:
         if facing is not rsm:
             rsm, sample = facing, _vpl_sample(facing)
         if rsm.count == 0:  # it lights only sides facing out of the LPV box: no propagation
-            totals = [g.zeros(propagation.coefficients(scene.settings.angular)) for g in chain]
-            self._lights[light.name] = LightGrids(light_key(light), totals, sample, None, res)
-            return totals, sample, 0
+            return self._unlit(scene, light, chain, res, sample)
         entry = self._lights.get(light.name)
         if cached is not None and entry is not None and same_vpls(entry.flux, rsm.flux):
             stats.skip("injection", f"light '{light.name}'",
@@ -543,6 +539,12 @@ class Engine:
         flux = rsm.flux if kept + rsm.flux.nbytes <= FLUX_KEPT else _digest(rsm.flux)
         self._lights[light.name] = LightGrids(light_key(light), totals, sample, flux, res)
         return totals, sample, rsm.count
+
+    def _unlit(self, scene: Scene, light, chain: list, res: int, sample: tuple):
+        """_light's result for a light with no VPL to propagate: zero grids, cached."""
+        totals = [g.zeros(propagation.coefficients(scene.settings.angular)) for g in chain]
+        self._lights[light.name] = LightGrids(light_key(light), totals, sample, None, res)
+        return totals, sample, 0
 
     def _source(self, scene: Scene, src, run: _ChainRun, bounds, stats: Stats) -> list:
         """A sources.Source's grids per cascade (sources.propagate), cached like a light's

@@ -61,6 +61,19 @@ def _merge(*parts: tuple[list, list]) -> tuple[list, list]:
     return verts, faces
 
 
+def _table() -> tuple[list, list]:
+    """A 1.2 x 0.8 m table 0.77 m high: a 5 cm top on four 6 cm legs."""
+    legs = [box_geometry((x - 0.03, y - 0.03, 0.0), (x + 0.03, y + 0.03, 0.72))
+            for x in (-0.55, 0.55) for y in (-0.35, 0.35)]
+    return _merge(box_geometry((-0.6, -0.4, 0.72), (0.6, 0.4, 0.77)), *legs)
+
+
+def _ground_plane(half: float) -> tuple[list, list]:
+    """One quad from -half to half in x and y at z = 0, facing up."""
+    return ([(-half, -half, 0.0), (half, -half, 0.0), (half, half, 0.0), (-half, half, 0.0)],
+            [(0, 1, 2, 3)])
+
+
 def point_room(resolution: Sequence[int] = (128, 128), *, shader: str = "DIFFUSE",
                new_file: bool = True) -> dict:
     """A closed 4 x 5 x 3 m room (x in [-2, 2], y in [-2.5, 2.5]) with a blue accent wall,
@@ -79,11 +92,7 @@ def point_room(resolution: Sequence[int] = (128, 128), *, shader: str = "DIFFUSE
     add_mesh_object(scene, "Ceiling", box_geometry(lo, hi, ["+z"], inward=True), ceiling)
     add_mesh_object(scene, "Walls", box_geometry(lo, hi, ["-x", "-y", "+x"], inward=True), wall)
     add_mesh_object(scene, "AccentWall", box_geometry(lo, hi, ["+y"], inward=True), accent)
-    legs = [
-        box_geometry((x - 0.03, y - 0.03, 0.0), (x + 0.03, y + 0.03, 0.72))
-        for x in (-0.55, 0.55) for y in (-0.35, 0.35)
-    ]
-    table = _merge(box_geometry((-0.6, -0.4, 0.72), (0.6, 0.4, 0.77)), *legs)
+    table = _table()
     add_mesh_object(scene, "Table", table, wood, location=(0.3, 0.4, 0.0), rotation_z_deg=10.0)
     sofa = _merge(box_geometry((-1.0, -0.45, 0.0), (1.0, 0.45, 0.45)),
                   box_geometry((-1.0, 0.25, 0.45), (1.0, 0.45, 0.95)))
@@ -110,8 +119,7 @@ def sun_yard(resolution: Sequence[int] = (128, 128), *, shader: str = "DIFFUSE",
     green = diffuse_material("Green", (0.12, 0.5, 0.1), shader)
     blue = diffuse_material("Blue", (0.1, 0.2, 0.65), shader)
     yellow = diffuse_material("Yellow", (0.75, 0.65, 0.1), shader)
-    plane = ([(-20.0, -20.0, 0.0), (20.0, -20.0, 0.0), (20.0, 20.0, 0.0), (-20.0, 20.0, 0.0)],
-             [(0, 1, 2, 3)])
+    plane = _ground_plane(20.0)
     add_mesh_object(scene, "Ground", plane, ground)
     boxes = [
         ("RedBox", (2.0, 2.0, 2.0), (0.0, 0.0), 20.0, red),
@@ -231,12 +239,7 @@ def sunlit_room(resolution: Sequence[int] = (128, 128), *, shader: str = "DIFFUS
     )
     add_mesh_object(scene, "Walls", walls, wall)
     add_mesh_object(scene, "Rug", box_geometry((-1.2, -1.2, 0.0), (1.2, 0.8, 0.02)), rug)
-    legs = [
-        box_geometry((x - 0.03, y - 0.03, 0.0), (x + 0.03, y + 0.03, 0.72))
-        for x in (-0.55, 0.55) for y in (-0.35, 0.35)
-    ]
-    add_mesh_object(scene, "Table", _merge(box_geometry((-0.6, -0.4, 0.72), (0.6, 0.4, 0.77)), *legs),
-                 wood, location=(1.6, -1.1, 0.0), rotation_z_deg=8.0)
+    add_mesh_object(scene, "Table", _table(), wood, location=(1.6, -1.1, 0.0), rotation_z_deg=8.0)
     sofa = _merge(box_geometry((-1.0, -0.45, 0.0), (1.0, 0.45, 0.45)),
                   box_geometry((-1.0, -0.45, 0.45), (1.0, -0.25, 0.95)))
     add_mesh_object(scene, "Sofa", sofa, fabric, location=(-0.2, -1.5, 0.0))
@@ -329,6 +332,17 @@ def _world(scene: bpy.types.Scene, name: str) -> tuple[bpy.types.World, bpy.type
     return world, bg
 
 
+def _sky_texture(scene: bpy.types.Scene, elevation_deg: float, rotation_deg: float) -> None:
+    """A new World on ``scene``: Blender's default Sky Texture (its default sky type and
+    settings) with its sun at that elevation and rotation, at Background strength 0.05."""
+    world, bg = _world(scene, "SkyTexture")
+    sky = world.node_tree.nodes.new("ShaderNodeTexSky")
+    sky.sun_elevation = math.radians(elevation_deg)
+    sky.sun_rotation = math.radians(rotation_deg)
+    world.node_tree.links.new(sky.outputs["Color"], bg.inputs["Color"])
+    bg.inputs["Strength"].default_value = 0.05
+
+
 def _roof_with_hole(lo: Sequence[float], hi: Sequence[float],
                     hole: tuple[float, float, float, float]) -> tuple[list, list]:
     """A roof slab from ``lo`` to ``hi`` with an open rectangle (x0, x1, y0, y1) in it."""
@@ -368,10 +382,7 @@ def sky_room(resolution: Sequence[int] = (128, 128), *, shader: str = "DIFFUSE",
     )
     add_mesh_object(scene, "Walls", walls, wall)
     add_mesh_object(scene, "Rug", box_geometry((-0.8, -0.9, 0.0), (1.6, 1.1, 0.02)), rug)
-    legs = [box_geometry((x - 0.03, y - 0.03, 0.0), (x + 0.03, y + 0.03, 0.72))
-            for x in (-0.55, 0.55) for y in (-0.35, 0.35)]
-    add_mesh_object(scene, "Table", _merge(box_geometry((-0.6, -0.4, 0.72), (0.6, 0.4, 0.77)), *legs),
-                    wood, location=(0.6, 0.1, 0.0), rotation_z_deg=12.0)
+    add_mesh_object(scene, "Table", _table(), wood, location=(0.6, 0.1, 0.0), rotation_z_deg=12.0)
     sofa = _merge(box_geometry((-1.0, -0.45, 0.0), (1.0, 0.45, 0.45)),
                   box_geometry((-1.0, 0.25, 0.45), (1.0, 0.45, 0.95)))
     add_mesh_object(scene, "Sofa", sofa, fabric, location=(0.0, 1.5, 0.0))
@@ -387,15 +398,9 @@ def sky_yard(resolution: Sequence[int] = (128, 128), *, shader: str = "DIFFUSE",
     (its sun disc on, 35 deg up, rotated 150 deg) at Background strength 0.05, no lamp;
     camera outside looking down at the group. Returns the scene's facts."""
     scene = new_scene("sky_yard", resolution, new_file)
-    world, bg = _world(scene, "SkyTexture")
-    sky = world.node_tree.nodes.new("ShaderNodeTexSky")  # default sky type and settings
-    sky.sun_elevation = math.radians(35.0)
-    sky.sun_rotation = math.radians(150.0)
-    world.node_tree.links.new(sky.outputs["Color"], bg.inputs["Color"])
-    bg.inputs["Strength"].default_value = 0.05
+    _sky_texture(scene, 35.0, 150.0)
     ground = diffuse_material("Ground", (0.5, 0.5, 0.5), shader)
-    plane = ([(-20.0, -20.0, 0.0), (20.0, -20.0, 0.0), (20.0, 20.0, 0.0), (-20.0, 20.0, 0.0)],
-             [(0, 1, 2, 3)])
+    plane = _ground_plane(20.0)
     add_mesh_object(scene, "Ground", plane, ground)
     boxes = [
         ("RedBox", (2.0, 2.0, 2.0), (0.0, 0.0), 20.0, (0.7, 0.08, 0.06)),
@@ -487,9 +492,7 @@ def soft_room(resolution: Sequence[int] = (128, 128), *, shader: str = "DIFFUSE"
     add_mesh_object(scene, "Floor", box_geometry(lo, hi, ["-z"], inward=True), floor)
     add_mesh_object(scene, "Room", box_geometry(lo, hi, ["+z", "-x", "+x", "-y", "+y"],
                                                 inward=True), wall)
-    legs = [box_geometry((x - 0.03, y - 0.03, 0.0), (x + 0.03, y + 0.03, 0.72))
-            for x in (-0.55, 0.55) for y in (-0.35, 0.35)]
-    table = _merge(box_geometry((-0.6, -0.4, 0.72), (0.6, 0.4, 0.77)), *legs)
+    table = _table()
     add_mesh_object(scene, "Table", table, wood, location=(-0.3, 0.3, 0.0), rotation_z_deg=15.0)
     add_mesh_object(scene, "Box", box_geometry((-0.25, -0.25, 0.0), (0.25, 0.25, 0.5)), blue,
                     location=(0.9, -0.5, 0.0), rotation_z_deg=30.0)
@@ -525,17 +528,11 @@ def window_room(resolution: Sequence[int] = (128, 128), *, shader: str = "DIFFUS
     ``wall_thickness``: the walls and roof given that thickness outward by a Solidify
     modifier, as an artist would."""
     scene = new_scene("window_room", resolution, new_file)
-    world, bg = _world(scene, "SkyTexture")
-    sky = world.node_tree.nodes.new("ShaderNodeTexSky")  # default sky type and settings
-    sky.sun_elevation = math.radians(30.0)
-    sky.sun_rotation = math.radians(200.0)
-    world.node_tree.links.new(sky.outputs["Color"], bg.inputs["Color"])
-    bg.inputs["Strength"].default_value = 0.05
+    _sky_texture(scene, 30.0, 200.0)
     ground = diffuse_material("Ground", (0.45, 0.42, 0.38), shader)
     wall = diffuse_material("Wall", (0.78, 0.76, 0.72), shader)
     wood = diffuse_material("Wood", (0.55, 0.40, 0.25), shader)
-    plane = ([(-15.0, -15.0, 0.0), (15.0, -15.0, 0.0), (15.0, 15.0, 0.0), (-15.0, 15.0, 0.0)],
-             [(0, 1, 2, 3)])
+    plane = _ground_plane(15.0)
     add_mesh_object(scene, "Ground", plane, ground)
     lo, hi = (-2.5, -2.0, 0.0), (2.5, 2.0, 2.7)
     add_mesh_object(scene, "Walls", box_geometry(lo, hi, ["+z", "-x", "+x", "+y"],
@@ -546,9 +543,7 @@ def window_room(resolution: Sequence[int] = (128, 128), *, shader: str = "DIFFUS
         for obj in (bpy.data.objects["Walls"], window_wall):
             mod = obj.modifiers.new("Solidify", "SOLIDIFY")
             mod.thickness, mod.offset = wall_thickness, -1.0
-    legs = [box_geometry((x - 0.03, y - 0.03, 0.0), (x + 0.03, y + 0.03, 0.72))
-            for x in (-0.55, 0.55) for y in (-0.35, 0.35)]
-    table = _merge(box_geometry((-0.6, -0.4, 0.72), (0.6, 0.4, 0.77)), *legs)
+    table = _table()
     add_mesh_object(scene, "Table", table, wood, location=(0.3, -0.4, 0.0), rotation_z_deg=10.0)
     add_mesh_object(scene, "Cabinet", box_geometry((-0.25, -0.6, 0.0), (0.25, 0.6, 1.1)), wood,
                     location=(-2.2, 0.5, 0.0))
