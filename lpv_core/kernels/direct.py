@@ -375,9 +375,43 @@ def _pcf(mat, ortho, scale, depth, res, qx, qy, qz, d, bias, planes):  # pragma:
             if d <= t + bias:
                 acc += wx * wy
                 lit |= 1 << (dx + 2 * dy)
-    if planes and 0 < lit < 15 and _in_crease(depth, res, x0, y0, lit, bias):
-        return 0.0
+    if 0 < lit < 15:
+        if planes and _in_crease(depth, res, x0, y0, lit, bias):
+            return 0.0
+        kept = _around_occluder(depth, res, x0, y0, fx, fy, d, lit, bias)
+        if kept != lit:
+            acc = 0.0
+            for k in range(4):
+                if kept & (1 << k):
+                    acc += (tx if k & 1 else 1.0 - tx) * (ty if k >> 1 else 1.0 - ty)
     return acc
+
+
+@jit.kernel
+def _around_occluder(depth, res, x0, y0, fx, fy, d, lit, tol):  # pragma: no cover
+    """direct._around_occluder of one receiver at (fx, fy), distance d, whose 2x2 taps from
+    (x0, y0) pass where ``lit``'s bits are set: those bits with the taps that went round an
+    occluder cleared (each occluder's slopes read once)."""
+    out = lit
+    for j in range(4):
+        if lit & (1 << j):
+            continue
+        xj, yj = min(max(x0 + (j & 1), 0), res - 1), min(max(y0 + (j >> 1), 0), res - 1)
+        c = np.float64(depth[yj, xj])
+        if not np.isfinite(c):
+            continue
+        gx, gy = _slopes(depth, res, xj, yj, c)
+        if not c + gx * (fx - xj) + gy * (fy - yj) < d - tol:
+            continue
+        for i in range(4):
+            if not out & (1 << i):
+                continue
+            xi, yi = min(max(x0 + (i & 1), 0), res - 1), min(max(y0 + (i >> 1), 0), res - 1)
+            if xi == xj and yi == yj:
+                continue
+            if c + gx * (xi - xj) + gy * (yi - yj) > d + tol:
+                out &= ~(1 << i)
+    return out
 
 
 @jit.kernel

@@ -463,9 +463,37 @@ def _in_crease(depth: np.ndarray, taps: list, tol: np.ndarray) -> np.ndarray:
     return out
 
 
+def _around_occluder(depth: np.ndarray, taps: list, fx, fy, d, tol) -> list:
+    """Per tap, whether it passes once the taps that went round an occluder are cleared: a
+    tap whose texel's ray, at the receiver's distance ``d``, lies in front of the plane of an
+    occluder another tap blocks the receiver with (that plane in front of the receiver where
+    it stands), both by ``tol``. That ray passed the occluder's edge on its light side, which
+    the receiver, behind the plane, does not reach through it: a wall's receiver just under a
+    roof's edge read the ground beyond the edge through such taps (a bright line along a
+    room's inner edges). A receiver far behind an occluder (a shadow's edge on a floor) is
+    behind its plane at every tap and keeps its filter."""
+    lits = [lit.copy() for _, _, lit in taps]
+    for j, (xj, yj, lj) in enumerate(taps):
+        c = depth[yj, xj].astype(np.float64)
+        gx, gy = _slope(depth, xj, yj, 1), _slope(depth, xj, yj, 0)
+        with np.errstate(invalid="ignore"):
+            occluder = ~lj & np.isfinite(c) & (c + gx * (fx - xj) + gy * (fy - yj) < d - tol)
+        if not occluder.any():
+            continue
+        for i, (xi, yi, _) in enumerate(taps):
+            if i == j:
+                continue
+            with np.errstate(invalid="ignore"):
+                round_ = c + gx * (xi - xj) + gy * (yi - yj) > d + tol
+            lits[i] &= ~(occluder & round_ & ((xi != xj) | (yi != yj)))
+    return lits
+
+
 def _hard(shadow: ShadowMap, face_of, p_off, dist, bias) -> np.ndarray:
     """2x2 bilinear percentage-closer filtering of each offset receiver in its view, each
-    tap against its texel's occluder plane (_plane_depth; with shadow.planes)."""
+    tap against its texel's occluder plane (_plane_depth; with shadow.planes), the taps that
+    went round an occluder cleared (_around_occluder) and, with planes, a crease in shadow
+    (_in_crease)."""
     res = shadow.resolution
     vis = np.ones(p_off.shape[0])
     for i, (view, depth) in enumerate(zip(shadow.views, shadow.depths)):
@@ -488,8 +516,7 @@ def _hard(shadow: ShadowMap, face_of, p_off, dist, bias) -> np.ndarray:
         y0 = np.floor(fy).astype(int)
         tx = fx - x0
         ty = fy - y0
-        acc = np.zeros(sel.size)
-        taps = []
+        taps, weights = [], []
         for dy, wy in ((0, 1.0 - ty), (1, ty)):
             for dx, wx in ((0, 1.0 - tx), (1, tx)):
                 xs = np.clip(x0 + dx, 0, res - 1)
@@ -497,9 +524,12 @@ def _hard(shadow: ShadowMap, face_of, p_off, dist, bias) -> np.ndarray:
                 # the tap's occluder plane at the receiver (_plane_depth)
                 t = (_plane_depth(depth, xs, ys, fx - xs, fy - ys) if shadow.planes
                      else depth[ys, xs])
-                lit = d <= t + bias[sel]
-                acc += wx * wy * lit
-                taps.append((xs, ys, lit))
+                taps.append((xs, ys, d <= t + bias[sel]))
+                weights.append(wx * wy)
+        lits = _around_occluder(depth, taps, fx, fy, d, bias[sel])
+        acc = np.zeros(sel.size)
+        for w, lit in zip(weights, lits):
+            acc += w * lit
         if shadow.planes:
             acc = np.where(_in_crease(depth, taps, bias[sel]), 0.0, acc)
         inside = (np.abs(u) <= 1.0) & (np.abs(v) <= 1.0)
