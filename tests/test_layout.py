@@ -36,9 +36,10 @@ PACKAGES = ("lpv_core", "lpv_addon")
 # soft taps' test of the occluder's own plane (a room's corners) about 110 more (21,591 then);
 # the umbra's empty soft taps and the atlas's opaque variant about 20 more (21,610 then); the
 # hard filter's crease test (walls standing on a ground) and the VPLs facing out of the LPV
-# box about 85 more (21,695 then). The cap catches duplicated code growing back; raise it only for new behaviour, by what that
+# box about 85 more (21,695 then); the hard filter's taps that went round an occluder (a
+# closed room's inner edges under the World) about 80 more (21,776 then). The cap catches duplicated code growing back; raise it only for new behaviour, by what that
 # behaviour measures.
-ZIP_PYTHON_LINES = 21_750
+ZIP_PYTHON_LINES = 21_800
 
 
 def _module_name(path: Path) -> str:
