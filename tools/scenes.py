@@ -354,12 +354,27 @@ def _roof_with_hole(lo: Sequence[float], hi: Sequence[float],
     )
 
 
+def _roof_quads(x0: float, x1: float, y0: float, y1: float, z: float,
+                hole: tuple[float, float, float, float]) -> tuple[list, list]:
+    """Single quads of a roof in the plane z over [x0, x1] x [y0, y1] (normals -z) around an
+    open rectangle (hx0, hx1, hy0, hy1)."""
+    hx0, hx1, hy0, hy1 = hole
+    rects = [(x0, x1, y0, hy0), (x0, x1, hy1, y1), (x0, hx0, hy0, hy1), (hx1, x1, hy0, hy1)]
+    verts, faces = [], []
+    for a, b, c, d in rects:
+        n = len(verts)
+        verts += [(a, c, z), (a, d, z), (b, d, z), (b, c, z)]
+        faces.append((n, n + 1, n + 2, n + 3))
+    return verts, faces
+
+
 def sky_room(resolution: Sequence[int] = (128, 128), *, shader: str = "DIFFUSE",
-             new_file: bool = True) -> dict:
+             new_file: bool = True, single_faces: bool = False) -> dict:
     """A closed 5 x 4 x 2.8 m room (inside x in [-2.5, 2.5], y in [-2, 2], z in [0, 2.8]) of
     solid 0.2 m slabs with a 2.0 x 1.2 m skylight in the roof, lit only by a uniform pale
     blue World (radiance (0.6, 0.7, 0.9) x 2) through it; a table, sofa and cabinet; no lamp.
-    Camera inside the -x/-y corner. Returns the scene's facts."""
+    Camera inside the -x/-y corner. ``single_faces``: the floor, walls and roof are single
+    quads (normals in), the quick way of modelling a room. Returns the scene's facts."""
     scene = new_scene("sky_room", resolution, new_file)
     _, bg = _world(scene, "Sky")
     bg.inputs["Color"].default_value = (0.6, 0.7, 0.9, 1.0)
@@ -371,16 +386,25 @@ def sky_room(resolution: Sequence[int] = (128, 128), *, shader: str = "DIFFUSE",
     fabric = diffuse_material("Fabric", (0.65, 0.18, 0.12), shader)
     t = 0.2
     x0, x1, y0, y1, z1 = -2.5, 2.5, -2.0, 2.0, 2.8
-    add_mesh_object(scene, "FloorSlab", box_geometry((x0 - t, y0 - t, -t), (x1 + t, y1 + t, 0.0)),
-                    floor_mat)
-    add_mesh_object(scene, "Roof", _roof_with_hole((x0 - t, y0 - t, z1), (x1 + t, y1 + t, z1 + t),
-                                                   (-0.6, 1.4, -0.5, 0.7)), wall)
-    walls = _merge(
-        box_geometry((x0 - t, y0, 0.0), (x0, y1, z1)), box_geometry((x1, y0, 0.0), (x1 + t, y1, z1)),
-        box_geometry((x0 - t, y0 - t, 0.0), (x1 + t, y0, z1)),
-        box_geometry((x0 - t, y1, 0.0), (x1 + t, y1 + t, z1)),
-    )
-    add_mesh_object(scene, "Walls", walls, wall)
+    if single_faces:
+        lo, hi = (x0, y0, 0.0), (x1, y1, z1)
+        add_mesh_object(scene, "FloorSlab", box_geometry(lo, hi, ["-z"], inward=True), floor_mat)
+        add_mesh_object(scene, "Walls", box_geometry(lo, hi, ["-x", "+x", "-y", "+y"],
+                                                     inward=True), wall)
+        add_mesh_object(scene, "Roof", _roof_quads(x0, x1, y0, y1, z1, (-0.6, 1.4, -0.5, 0.7)),
+                        wall)
+    else:
+        add_mesh_object(scene, "FloorSlab",
+                        box_geometry((x0 - t, y0 - t, -t), (x1 + t, y1 + t, 0.0)), floor_mat)
+        add_mesh_object(scene, "Roof", _roof_with_hole(
+            (x0 - t, y0 - t, z1), (x1 + t, y1 + t, z1 + t), (-0.6, 1.4, -0.5, 0.7)), wall)
+        walls = _merge(
+            box_geometry((x0 - t, y0, 0.0), (x0, y1, z1)),
+            box_geometry((x1, y0, 0.0), (x1 + t, y1, z1)),
+            box_geometry((x0 - t, y0 - t, 0.0), (x1 + t, y0, z1)),
+            box_geometry((x0 - t, y1, 0.0), (x1 + t, y1 + t, z1)),
+        )
+        add_mesh_object(scene, "Walls", walls, wall)
     add_mesh_object(scene, "Rug", box_geometry((-0.8, -0.9, 0.0), (1.6, 1.1, 0.02)), rug)
     add_mesh_object(scene, "Table", _table(), wood, location=(0.6, 0.1, 0.0), rotation_z_deg=12.0)
     sofa = _merge(box_geometry((-1.0, -0.45, 0.0), (1.0, 0.45, 0.45)),
@@ -639,6 +663,7 @@ SCENES: dict[str, tuple[str, dict]] = {
     "sunlit_room": ("sunlit_room", {}),
     "library": ("library", {}),
     "sky_room": ("sky_room", {}),
+    "sky_room_thin": ("sky_room", {"single_faces": True}),
     "sky_yard": ("sky_yard", {}),
     "panel_room": ("panel_room", {}),
     "soft_room": ("soft_room", {}),
@@ -648,8 +673,8 @@ SCENES: dict[str, tuple[str, dict]] = {
 # The scenes lit by the World, emitting materials or soft lamps (issue 17's acceptance
 # scenes, tools/sources_check.py); the others are lamp-lit, hard-shadowed, diffuse-only and
 # black-world, as the radiometric calibration and the report need.
-LIGHT_SOURCE_SCENES = ("sky_room", "sky_yard", "panel_room", "soft_room", "window_room",
-                       "window_room_thick")
+LIGHT_SOURCE_SCENES = ("sky_room", "sky_room_thin", "sky_yard", "panel_room", "soft_room",
+                       "window_room", "window_room_thick")
 
 
 def build(name: str, **kw) -> dict:

@@ -38,6 +38,7 @@ RESOLUTION = (128, 128)
 # Scene -> (Cycles samples, kind): samples enough for low noise (a skylight is hard to sample).
 SCENES = {
     "sky_room": (4096, "room"),
+    "sky_room_thin": (4096, "room"),
     "sky_yard": (1024, "outdoors"),
     "panel_room": (2048, "room"),
     "soft_room": (2048, "room"),
