@@ -260,14 +260,16 @@ def test_light_source_scene_builders(name):
     strength = world["Background"].inputs["Strength"].default_value
     emitting = [m.name for m in bpy.data.materials if m.users and _emitting(m)]
     lamps = {bpy.data.objects[n].data.type: bpy.data.objects[n].data for n in facts["lights"]}
-    if name in ("sky_room", "sky_room_thin", "sky_yard", "window_room", "window_room_thick"):
+    if name.startswith(("sky_", "window_room")):
         assert strength > 0 and not lamps and not emitting
         uniform = name.startswith("sky_room")
         assert ("ShaderNodeTexSky" in {n.bl_idname for n in world}) == (not uniform)
-        if name == "sky_room_thin":  # the quick way: single quads, normals into the room
+        if name.startswith("sky_room_thin"):  # the quick way: single quads, normals in
             roof, walls = bpy.data.objects["Roof"].data, bpy.data.objects["Walls"].data
             assert len(walls.polygons) == 4 and len(roof.polygons) == 4
             assert all(p.normal.z < -0.99 for p in roof.polygons)
+            floor = bpy.data.objects["FloorSlab"]
+            assert floor.dimensions.x == pytest.approx(30.0 if "ground" in name else 5.0)
     elif name == "panel_room":
         assert strength == 0 and not lamps and len(emitting) >= 2
     else:

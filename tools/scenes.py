@@ -369,12 +369,13 @@ def _roof_quads(x0: float, x1: float, y0: float, y1: float, z: float,
 
 
 def sky_room(resolution: Sequence[int] = (128, 128), *, shader: str = "DIFFUSE",
-             new_file: bool = True, single_faces: bool = False) -> dict:
+             new_file: bool = True, single_faces: bool = False, ground: float = 0.0) -> dict:
     """A closed 5 x 4 x 2.8 m room (inside x in [-2.5, 2.5], y in [-2, 2], z in [0, 2.8]) of
     solid 0.2 m slabs with a 2.0 x 1.2 m skylight in the roof, lit only by a uniform pale
     blue World (radiance (0.6, 0.7, 0.9) x 2) through it; a table, sofa and cabinet; no lamp.
     Camera inside the -x/-y corner. ``single_faces``: the floor, walls and roof are single
-    quads (normals in), the quick way of modelling a room. Returns the scene's facts."""
+    quads (normals in), the quick way of modelling a room; ``ground`` > 0 with them: the floor
+    is a ground plane reaching that far from the centre. Returns the scene's facts."""
     scene = new_scene("sky_room", resolution, new_file)
     _, bg = _world(scene, "Sky")
     bg.inputs["Color"].default_value = (0.6, 0.7, 0.9, 1.0)
@@ -388,7 +389,8 @@ def sky_room(resolution: Sequence[int] = (128, 128), *, shader: str = "DIFFUSE",
     x0, x1, y0, y1, z1 = -2.5, 2.5, -2.0, 2.0, 2.8
     if single_faces:
         lo, hi = (x0, y0, 0.0), (x1, y1, z1)
-        add_mesh_object(scene, "FloorSlab", box_geometry(lo, hi, ["-z"], inward=True), floor_mat)
+        add_mesh_object(scene, "FloorSlab", _ground_plane(ground) if ground > 0 else
+                        box_geometry(lo, hi, ["-z"], inward=True), floor_mat)
         add_mesh_object(scene, "Walls", box_geometry(lo, hi, ["-x", "+x", "-y", "+y"],
                                                      inward=True), wall)
         add_mesh_object(scene, "Roof", _roof_quads(x0, x1, y0, y1, z1, (-0.6, 1.4, -0.5, 0.7)),
@@ -664,6 +666,7 @@ SCENES: dict[str, tuple[str, dict]] = {
     "library": ("library", {}),
     "sky_room": ("sky_room", {}),
     "sky_room_thin": ("sky_room", {"single_faces": True}),
+    "sky_room_thin_ground": ("sky_room", {"single_faces": True, "ground": 15.0}),
     "sky_yard": ("sky_yard", {}),
     "panel_room": ("panel_room", {}),
     "soft_room": ("soft_room", {}),
@@ -673,8 +676,8 @@ SCENES: dict[str, tuple[str, dict]] = {
 # The scenes lit by the World, emitting materials or soft lamps (issue 17's acceptance
 # scenes, tools/sources_check.py); the others are lamp-lit, hard-shadowed, diffuse-only and
 # black-world, as the radiometric calibration and the report need.
-LIGHT_SOURCE_SCENES = ("sky_room", "sky_room_thin", "sky_yard", "panel_room", "soft_room",
-                       "window_room", "window_room_thick")
+LIGHT_SOURCE_SCENES = ("sky_room", "sky_room_thin", "sky_room_thin_ground", "sky_yard",
+                       "panel_room", "soft_room", "window_room", "window_room_thick")
 
 
 def build(name: str, **kw) -> dict:

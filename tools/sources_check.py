@@ -39,6 +39,7 @@ RESOLUTION = (128, 128)
 SCENES = {
     "sky_room": (4096, "room"),
     "sky_room_thin": (4096, "room"),
+    "sky_room_thin_ground": (4096, "room"),
     "sky_yard": (1024, "outdoors"),
     "panel_room": (2048, "room"),
     "soft_room": (2048, "room"),
