@@ -20,25 +20,52 @@ from .runtime import jit
 
 REPROJECTION_GAIN = np.pi / (sh.C0**2 + sh.C1**2)  # = 12/7
 OFFSET_CELLS = 0.5  # receivers read half a cell along their normal [KD10 sec. 4.4]
+PLANE_TOLERANCE = 1e-3  # cells: a corner centred on the receiver's plane stays (scale-stable)
 
 
 def sample(grid: Grid, values: np.ndarray, positions: np.ndarray,
-           visibility: np.ndarray | None = None) -> np.ndarray:
+           visibility: np.ndarray | None = None,
+           normals: np.ndarray | None = None) -> np.ndarray:
     """Trilinear SH samples (M, 3, K) at world positions (M, 3), K = values.shape[-1] (4, or 9
     for a discrete-ordinates grid); zero outside the grid. With ``visibility``, corners behind
-    occluders are left out (injection.visible_corners)."""
+    occluders are left out (injection.visible_corners); with the receivers' ``normals``, the
+    corners behind their own planes too (front_corners)."""
     m = positions.shape[0]
     k_coeffs = values.shape[-1]
     if m == 0:
         return np.zeros((0, 3, k_coeffs), np.float32)
     coords = grid.cell_coords(positions)
     idx, wts = trilinear_corners(coords, grid.resolution)
+    if normals is not None:
+        wts = front_corners(coords, wts, np.asarray(normals, np.float64))
     wts = visible_corners(coords, idx, wts, visibility, grid.resolution)
     flat = values.reshape(-1, 3 * k_coeffs)
     out = np.zeros((m, 3 * k_coeffs), np.float64)
     for k in range(8):
         out += wts[k][:, None] * flat[idx[k]]
     return out.reshape(m, 3, k_coeffs)
+
+
+def front_corners(coords: np.ndarray, wts: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """Trilinear weights (8, N) without the corners whose centre lies behind the receiver's own
+    plane (OFFSET_CELLS behind the sample point ``coords`` along ``normals``; PLANE_TOLERANCE),
+    the rest renormalised (all behind: unchanged). Such a cell's light is the far side's: a
+    wall of single faces crosses the cell whose centre is outside, and its inner side read the
+    sunlit outer side's light there."""
+    base = np.floor(coords)
+    out = wts.copy()
+    k = 0
+    for dx in (0, 1):
+        for dy in (0, 1):
+            for dz in (0, 1):
+                ahead = ((base[:, 0] + dx - coords[:, 0]) * normals[:, 0]
+                         + (base[:, 1] + dy - coords[:, 1]) * normals[:, 1]
+                         + (base[:, 2] + dz - coords[:, 2]) * normals[:, 2])
+                out[k] = np.where(ahead > -(OFFSET_CELLS + PLANE_TOLERANCE), out[k], 0.0)
+                k += 1
+    total, original = out.sum(axis=0), wts.sum(axis=0)
+    scale = np.divide(original, total, out=np.zeros_like(total), where=total > 0)
+    return np.where(total > 0, out * scale, wts)
 
 
 def gap_corrected(grid: Grid, positions: np.ndarray, gaps: np.ndarray | None) -> np.ndarray:
@@ -91,7 +118,9 @@ def irradiance(
     read with the irradiance kernel of sh.irradiance_weights, exact for the clamped cosine up to
     band 2 (Ramamoorthi & Hanrahan 2001): a beam, an isotropic field and a uniform hemisphere
     (light leaving a lit floor: a floor receives none of it) all come out right to within the
-    kernel's band 4. ``angular="sh"`` (KD10's grid, 4 coefficients): the clamped cosine lobe of the module docstring, times KD10's
+    kernel's band 4. It leaves out the corners behind the receiver's own plane
+    (front_corners), which lies OFFSET_CELLS behind the sample point: with ``offset_cells=0``
+    the ``positions`` are sample points (sample_points). ``angular="sh"`` (KD10's grid, 4 coefficients): the clamped cosine lobe of the module docstring, times KD10's
     gradient damping (``gradient_damping``).
     """
     positions = np.asarray(positions, np.float64)
@@ -100,7 +129,8 @@ def irradiance(
         return _compiled.irradiance(grid, values, positions, normals, offset_cells, angular,
                                     visibility)
     at = positions + normals * (offset_cells * grid.cell_size)
-    coeffs = sample(grid, values, at, visibility)
+    front = normals if values.shape[-1] == sh.BANDS2 else None  # KD10's baseline reads all 8
+    coeffs = sample(grid, values, at, visibility, front)
     if coeffs.shape[-1] == sh.BANDS2:
         e = np.einsum("mcs,ms->mc", coeffs, sh.irradiance_weights(normals))
         return np.maximum(e / (grid.cell_size**2), 0.0)

@@ -1,5 +1,6 @@
 """Core LPV numerics against hand-derived values: SH, injection, propagation, lookup, scene."""
 
+import contextlib
 import itertools
 
 import numpy as np
@@ -8,6 +9,7 @@ import pytest
 from lpv_core import engine, grid, injection, lookup, propagation, sh
 from lpv_core.propagation import kd10, ordinates, quadrature
 from lpv_core.render import deferred
+from lpv_core.runtime import jit
 from lpv_core.scene import GISettings, Light, make_scene
 from tools import core_scenes as demo
 
@@ -181,6 +183,31 @@ def test_gradient_damping_removes_the_leak_through_a_thin_wall():
     np.testing.assert_allclose(kept, phi / 2.0, rtol=1e-6)
     with pytest.raises(ValueError, match="KD10"):  # a 4-coefficient grid is KD10's, not dom's
         lookup.irradiance(g, values, back, up, angular="dom")
+
+
+@pytest.mark.parametrize("compiled", [False, True])
+def test_a_receiver_reads_no_light_from_behind_its_own_plane(compiled):
+    """A single face at z = 4.7 crosses cell (4, 4, 4) (centre z = 4.5) above its centre: that
+    cell's light is the face's underside's (isotropic here, 1 in band 0). The receiver on the
+    top (normal +z, sample point z = 5.2: 0.3 of cell 4 by trilinear weight) reads none of it,
+    the one underneath (normal -z, sample point z = 4.2, cell 4's centre in front of it) reads
+    cell 4's trilinear share 0.7, and a plane through the centre (z = 4.5, sample point between the
+    cells) keeps half: a corner on the plane stays (lookup.front_corners)."""
+    g = grid.Grid((0.0, 0.0, 0.0), 1.0, 8)
+    values = np.zeros(g.shape(sh.BANDS2), np.float32)
+    values[4, 4, 4, :, 0] = 1.0
+    up, down = np.array([[0.0, 0.0, 1.0]]), np.array([[0.0, 0.0, -1.0]])
+    at = lambda z: np.array([[4.5, 4.5, z]])
+    per_coefficient = sh.irradiance_weights(up)[0, 0]  # band 0 reads the same either way up
+    with (contextlib.nullcontext() if compiled else jit.disabled()):
+        top = lookup.irradiance(g, values, at(4.7), up)
+        under = lookup.irradiance(g, values, at(4.7), down)
+        centre = lookup.irradiance(g, values, at(4.5), up)
+        sampled = lookup.irradiance(g, values, at(5.2), up, offset_cells=0.0)
+    np.testing.assert_array_equal(top, 0.0)
+    np.testing.assert_array_equal(sampled, 0.0)  # the same sample point, given directly
+    np.testing.assert_allclose(under, 0.7 * per_coefficient, rtol=1e-6)  # its trilinear share
+    np.testing.assert_allclose(centre, 0.5 * per_coefficient, rtol=1e-6)
 
 
 @pytest.mark.parametrize("change, named", [({"angular": "m1"}, "'m1' was retired"),

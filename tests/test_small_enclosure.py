@@ -57,8 +57,8 @@ def test_resolved_enclosures_and_free_lights_get_no_entry(crate, grid):
 
 
 def test_the_named_grid_cuts_the_leak():
-    """What the entry says: at 16^3 (0.93 cells) nearly all the crate's light leaks into the
-    room (measured 99.5 %), at the resolution it names (32^3, 2 cells) a fifth (18 %)."""
+    """What the entry says: at 16^3 (0.93 cells) most of the crate's light leaks into the
+    room (measured 80 %), at the resolution it names (32^3, 2 cells) a tenth (11 %)."""
     leak = {}
     for grid in (16, 32):
         free = crate_room(None, grid)
@@ -67,7 +67,7 @@ def test_the_named_grid_cuts_the_leak():
         boxed = crate_room(0.4, grid)
         eng, res, _ = _update(boxed)
         leak[grid] = deferred.render(eng, boxed, res)["Diffuse Indirect"].mean() / lit
-    assert leak[16] > 0.9 and leak[32] < 0.25, leak
+    assert leak[16] > 0.7 and leak[32] < 0.2, leak
 
 
 def test_only_lights_with_occluders_all_around_within_reach_are_looked_at():

@@ -11,8 +11,9 @@ and above the -x-y-z faces); 11 samplers per draw, one draw per cascade. A fragm
 repeats ``lpv_core.lookup.irradiance`` for every pixel of the extracted scene geometry: sample
 half a cell along the viewer-facing normal, moved out of the slabs an occluder's face plane cut
 off (``lookup.sample_points`` / ``gap_corrected``; skipped for a cascade without gaps),
-trilinear over the 8 nearest cells (zero outside the grid) leaving out corners behind
-occluders and renormalising (``injection.visible_corners``), then the irradiance kernel of
+trilinear over the 8 nearest cells (zero outside the grid) leaving out corners behind the
+receiver's own plane (``lookup.front_corners``) and behind occluders and renormalising
+(``injection.visible_corners``), then the irradiance kernel of
 ``sh.irradiance_weights`` / s^2; clamp at zero; cascades add up. Indirect radiance = irradiance / pi x albedo, 0 where ``gi_receiver`` is off (the albedo: per corner x corner colour, x the material's texture per pixel as ``textures.sample`` reads it: one draw per texture, uploaded once per digest; x the material's Diffuse Color share at the fragment's view angle, ``textures.share_at`` of the stacked ``textures.view_shares`` tables, uploaded once per result as a float texture: the 13th sampler). Per-vertex
 shading would blur the LPV over large polygons (a Cornell wall is one quad). Transition areas are multiplied into the
 uploaded grids per cell (exact inside a box and far from it; the falloff is resolved at cell
@@ -70,6 +71,7 @@ const float K1 = 1.0233267079464885;      /* 2 pi / 3 Y1 */
 const float K2A = 0.8580855308097834;     /* pi / 4 Y2A */
 const float K2B = 0.2477079561003757;     /* pi / 4 Y2B */
 const float K2C = 0.4290427654048917;     /* pi / 4 Y2C */
+const float PLANE = 0.501;  /* lookup.OFFSET_CELLS + lookup.PLANE_TOLERANCE, in cells */
 
 /* textures.sample in GLSL (Cycles' CPU image kernel) with texelFetch: codes in tex_mode */
 int wrap(int i, int n, int ext) {
@@ -216,6 +218,17 @@ void main() {
     vec3 s8 = vec3(0.0);   /* coefficient 8 of r, g, b */
     float w_all = 0.0;
     float w_seen = 0.0;
+    /* lookup.front_corners: corners behind the receiver's plane out (unless all are) */
+    float w_front = 0.0;
+    for (int k = 0; k < 8; k++) {
+        ivec3 d = ivec3(k >> 2, (k >> 1) & 1, k & 1);
+        ivec3 i = ib + d;
+        if (any(lessThan(i, ivec3(0))) || any(greaterThanEqual(i, ivec3(res)))) {
+            continue;
+        }
+        vec3 wv = mix(1.0 - f, f, vec3(d));
+        w_front += dot(vec3(d) - f, n) > -PLANE ? wv.x * wv.y * wv.z : 0.0;
+    }
     for (int k = 0; k < 8; k++) {
         ivec3 d = ivec3(k >> 2, (k >> 1) & 1, k & 1);
         ivec3 i = ib + d;
@@ -225,6 +238,9 @@ void main() {
         vec3 wv = mix(1.0 - f, f, vec3(d));
         float w = wv.x * wv.y * wv.z;
         w_all += w;
+        if (w_front > 0.0 && !(dot(vec3(d) - f, n) > -PLANE)) {
+            w = 0.0;
+        }
         ivec3 st = d - near;
         for (int a = 0; a < 3; a++) {
             w *= st[a] > 0 ? plus[a] : (st[a] < 0 ? minus[a] : 1.0);

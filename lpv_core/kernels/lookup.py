@@ -11,6 +11,8 @@ from .. import sh
 from ..grid import Grid
 from ..runtime import jit, pool
 
+_PLANE = 0.5 + 1e-3  # lookup.OFFSET_CELLS + lookup.PLANE_TOLERANCE (front_corners)
+
 
 def gap_corrected(grid: Grid, positions: np.ndarray, gaps: np.ndarray) -> np.ndarray:
     """lookup.gap_corrected of float64 points (M >= 1, 3) and ``gaps`` by ``_gap_kernel``."""
@@ -27,7 +29,7 @@ def irradiance(grid: Grid, values: np.ndarray, positions: np.ndarray, normals: n
                visibility: np.ndarray | None = None) -> np.ndarray:
     """lookup.irradiance of a 9-coefficient grid (which ``angular`` does not change) at float64
     points (M >= 1, 3) by ``_irradiance_kernel``: the same float64 arithmetic as lookup.sample
-    (trilinear, visible_corners) and sh.irradiance_weights, point by point (1280x720 points at
+    (trilinear, front_corners, visible_corners) and sh.irradiance_weights, point by point (1280x720 points at
     32^3: numpy ~1.6 s)."""
     r = grid.resolution
     flat = np.ascontiguousarray(values, np.float32).reshape(r**3, 3 * sh.BANDS2)
@@ -48,7 +50,8 @@ def _irradiance_kernel(origin, cell, r, flat, vis, kernel, pos, nrm, offset, out
                        m1):  # pragma: no cover - compiled
     """``irradiance`` (9 coefficients) of points m0..m1-1: the sample point ``offset`` cells
     along the normal, grid.cell_coords, injection.trilinear_corners (corners outside get
-    weight 0), injection.visible_corners with ``vis`` (6, R^3) (none when empty), the
+    weight 0), lookup.front_corners, injection.visible_corners with ``vis`` (6, R^3) (none
+    when empty), the
     trilinear sum in corner order, the band 0-2 irradiance weights of -n, / s^2, >= 0."""
     has_vis = vis.shape[0] > 0
     s2 = cell * cell
@@ -85,6 +88,25 @@ def _irradiance_kernel(origin, cell, r, flat, vis, kernel, pos, nrm, offset, out
                         idx[k] = 0
                         w[k] = 0.0
                     k += 1
+        # front_corners: corners behind the receiver's plane out, the rest renormalised
+        total = 0.0
+        original = 0.0
+        k = 0
+        for dx in range(2):
+            for dy in range(2):
+                for dz in range(2):
+                    ahead = ((bx + dx - cx) * nx + (by + dy - cy) * ny + (bz + dz - cz) * nz)
+                    original += w[k]
+                    if ahead > -_PLANE:
+                        seen[k] = w[k]
+                    else:
+                        seen[k] = 0.0
+                    total += seen[k]
+                    k += 1
+        if total > 0:
+            scale = original / total
+            for k in range(8):
+                w[k] = seen[k] * scale
         if has_vis:  # visible_corners: corners behind occluders out, the rest renormalised
             near = (1 if fx > 0.5 + 1e-3 else 0, 1 if fy > 0.5 + 1e-3 else 0,
                     1 if fz > 0.5 + 1e-3 else 0)

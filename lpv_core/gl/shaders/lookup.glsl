@@ -1,6 +1,7 @@
 // Indirect irradiance of a 9-coefficient (bands 0-2) grid at receivers (lookup.irradiance):
-// the trilinear sample half a cell along the normal (injection.visible_corners' weights where
-// there is a visibility), read with the band 0-2 irradiance kernel (sh.irradiance_weights).
+// the trilinear sample half a cell along the normal (lookup.front_corners, and
+// injection.visible_corners' weights where there is a visibility), read with the band 0-2
+// irradiance kernel (sh.irradiance_weights).
 // Positions are float64 and become cell coordinates in double precision: a grid 1e5 m from the
 // origin loses nothing.
 layout(std430, binding = 0) readonly buffer Values { float values[]; };  // (R, R, R, 3, 9)
@@ -27,25 +28,36 @@ vec3 cell_coords(dvec3 p, dvec3 n, out ivec3 ic0, out ivec3 near) {
     return vec3(frac);
 }
 
-// injection.trilinear_corners' weights (zero outside the grid) and, with use_vis,
-// injection.visible_corners: each corner x the transmittance of the faces the step from the
-// nearest cell to it crosses, renormalised to the inside weight (the plain weights where
-// every corner is hidden)
-void corner_weights(vec3 fr, ivec3 ic0, ivec3 near, out float w[8]) {
+// injection.trilinear_corners' weights (zero outside the grid) less the corners behind the
+// receiver's plane (lookup.front_corners: ahead of -PLANE cells along n), renormalised, and,
+// with use_vis, injection.visible_corners: each corner x the transmittance of the faces the
+// step from the nearest cell to it crosses, renormalised to the inside weight (the weights
+// before it where every corner is hidden)
+const float PLANE = 0.5 + 1e-3;  // lookup.OFFSET_CELLS + lookup.PLANE_TOLERANCE
+void corner_weights(vec3 fr, ivec3 ic0, ivec3 near, vec3 n, out float w[8]) {
+    float tri[8];
     float plain[8];
     float original = 0.0;
+    float front = 0.0;
+    for (int k = 0; k < 8; ++k) {
+        ivec3 d = ivec3((k >> 2) & 1, (k >> 1) & 1, k & 1);
+        ivec3 ic = ic0 + d;
+        bool inside = all(greaterThanEqual(ic, ivec3(0))) && all(lessThan(ic, ivec3(R)));
+        vec3 wv = mix(1.0 - fr, fr, vec3(d));
+        tri[k] = inside ? wv.x * wv.y * wv.z : 0.0;
+        original += tri[k];
+        plain[k] = dot(vec3(d) - fr, n) > -PLANE ? tri[k] : 0.0;
+        front += plain[k];
+    }
+    float fs = front > 0.0 ? original / front : 0.0;
+    for (int k = 0; k < 8; ++k) plain[k] = front > 0.0 ? plain[k] * fs : tri[k];
     float total = 0.0;
     ivec3 nc = clamp(ic0 + near, ivec3(0), ivec3(R - 1));
     uint cells = uint(R * R * R);
     uint fc = uint((nc.x * R + nc.y) * R + nc.z);
     for (int k = 0; k < 8; ++k) {
         ivec3 d = ivec3((k >> 2) & 1, (k >> 1) & 1, k & 1);
-        ivec3 ic = ic0 + d;
-        bool inside = all(greaterThanEqual(ic, ivec3(0))) && all(lessThan(ic, ivec3(R)));
-        vec3 wv = mix(1.0 - fr, fr, vec3(d));
-        float wk = inside ? wv.x * wv.y * wv.z : 0.0;
-        original += wk;
-        plain[k] = wk;
+        float wk = plain[k];
         if (use_vis != 0) {
             for (int a = 0; a < 3; ++a) {
                 int st = d[a] - near[a];
@@ -71,7 +83,7 @@ void main() {
     ivec3 ic0, near;
     vec3 fr = cell_coords(dvec3(pos[o], pos[o + 1u], pos[o + 2u]), nd, ic0, near);
     float w[8];
-    corner_weights(fr, ic0, near, w);
+    corner_weights(fr, ic0, near, n, w);
     float s[27];
     for (int j = 0; j < 27; ++j) s[j] = 0.0;
     for (int k = 0; k < 8; ++k) {
