@@ -40,6 +40,7 @@ from .runtime import jit
 # them.
 COVERAGE_SAMPLES = _compiled.COVERAGE_SAMPLES
 SURFEL_SPACING = _compiled.SURFEL_SPACING
+GAP_COVERAGE = _compiled.GAP_COVERAGE  # (3/8: over half of a face, to within its sampling)
 
 
 MAX_SPLITS = 64  # sub-triangles along a triangle's edge at most (kernels' _splits_kernel too)
@@ -238,10 +239,12 @@ def cell_gaps(grid: Grid, coverage: np.ndarray, offsets: np.ndarray) -> np.ndarr
     ceiling 0.3 cells above a plane is put on it, the 0.3 cells of the cell above the plane,
     below the real ceiling, are room air on the wrong side of the LPV's ceiling: a receiver on
     a wall there would read the dark cell above (a black seam along every such edge).
-    lookup.gap_corrected moves sample points out of these slabs."""
+    lookup.gap_corrected moves sample points out of these slabs. A face counts as blocked when
+    its sampled coverage exceeds GAP_COVERAGE: over half of it, to within the sampling (the
+    wall of a cell a room's corner cuts, whose far part is outside the room, is then one)."""
     r = grid.resolution
     gaps = np.zeros((6, r, r, r), np.float32)
-    blocked = coverage > 0.5  # mostly covered: the face stands for the surface there
+    blocked = coverage > GAP_COVERAGE  # mostly covered: the face stands for the surface
     for axis in range(3):
         d = np.where(blocked[axis], offsets[axis], 0.0)
         up = np.moveaxis(np.maximum(d, 0.0), 0, axis)  # surface above plane i: cell i's slab

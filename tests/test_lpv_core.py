@@ -6,7 +6,7 @@ import itertools
 import numpy as np
 import pytest
 
-from lpv_core import engine, grid, injection, lookup, propagation, sh
+from lpv_core import engine, geometry_volume, grid, injection, lookup, propagation, sh
 from lpv_core.propagation import kd10, ordinates, quadrature
 from lpv_core.render import deferred
 from lpv_core.runtime import jit
@@ -652,6 +652,36 @@ def test_cell_gaps_mark_the_slab_a_snapped_occluder_cut_off():
         out = lookup.gap_corrected(g, pts, gaps)
         assert out[0].tolist() == [3.5, 3.5, moved_to]  # in the slab: across the plane
         np.testing.assert_array_equal(out[1:], pts[1:])  # beyond the ceiling, far, or beside
+
+
+@pytest.mark.parametrize("compiled", [False, True])
+def test_a_corner_cells_wall_keeps_its_gap_and_the_room_reads_no_light_from_outside(compiled):
+    """A room of single faces (x 1 .. 5.66, y 2.7 .. 6, z 0.5 .. 4.78) on a grid of 1 m cells:
+    its y = 2.7 wall lies in the slab of plane y = 3 and is put on it. In the corner cell
+    (5, 2, 4) the side wall and the roof leave that face 0.66 x 0.78 = 0.52 covered, sampled
+    5/8 x 6/8 = 0.47. It still counts as the wall's (geometry_volume.GAP_COVERAGE): a receiver
+    on the roof in the slab reads the room's side, not the cell outside (100x brighter here);
+    with the face left gap-free it read over 20x the room's light there."""
+    room = demo.box_triangles((1.0, 2.7, 0.5), (5.66, 6.0, 4.78), inward=True)
+    g = grid.Grid((0.0, 0.0, 0.0), 1.0, 8)
+    with (contextlib.nullcontext() if compiled else jit.disabled()):
+        vis, gaps = geometry_volume.occluder_volume(g, room)
+    assert vis[2, 5, 2, 4] == pytest.approx(1.0 - 30 / 64)  # the sampled coverage
+    assert gaps[2, 5, 2, 4] == pytest.approx(0.3, abs=1e-6)  # from plane y = 3 down to the wall
+    values = np.zeros(g.shape(sh.BANDS2), np.float32)
+    values[..., 0] = 1.0  # the room: 1 in band 0
+    values[:, :3, :, :, 0] = 100.0  # outside, beyond the wall (cell centres y < 3)
+    roof = np.array([[5.3, 2.85, 4.78]])
+    down = np.array([[0.0, 0.0, -1.0]])
+    room_light = sh.irradiance_weights(down)[0, 0]
+    with (contextlib.nullcontext() if compiled else jit.disabled()):
+        at = lookup.sample_points(g, roof, down, gaps)
+        e = lookup.irradiance(g, values, at, down, offset_cells=0.0, visibility=vis)
+        plain = lookup.irradiance(g, values, lookup.sample_points(g, roof, down, None), down,
+                                  offset_cells=0.0, visibility=vis)
+    assert at[0, 1] == pytest.approx(3.5)  # moved across the plane, to the room's cell centre
+    np.testing.assert_allclose(e, room_light, rtol=1e-5)
+    assert plain.min() > 20.0 * room_light  # what the slab's point read without the gap
 
 
 def test_no_dark_seam_where_a_wall_meets_a_snapped_ceiling():

@@ -30,8 +30,8 @@ planes with something on them; the working arrays are kept between calls (_Scrat
 Hot loops call no compiled function with array arguments (each such call counts references to
 its arrays: atomic operations that cost more than the work per sub-triangle).
 
-The stage's parameters COVERAGE_SAMPLES and SURFEL_SPACING are defined here, for both (the
-stage imports them; geometry_volume says why these values).
+The stage's parameters COVERAGE_SAMPLES, SURFEL_SPACING and GAP_COVERAGE are defined here, for
+both (the stage imports them; geometry_volume says why these values).
 """
 
 from __future__ import annotations
@@ -48,6 +48,12 @@ from ..runtime.pool import executor, workers
 
 COVERAGE_SAMPLES = 8  # sample points per face edge (geometry_volume.face_coverage)
 SURFEL_SPACING = 0.5  # sub-triangle length, in cells (geometry_volume._subdivide)
+# A face stands for its surface in the gaps (geometry_volume.cell_gaps) when its surface covers
+# over half of it. Its coverage is sampled: each edge of the surface's footprint on the face
+# is placed to half a sample spacing, 1 / (2 M) of the face, so a footprint bounded by two
+# edges across the face (a wall's part of a cell at a room's corner, the side wall and the
+# roof each cutting it) reads up to 1 / M below what it covers: over half, read to within that
+GAP_COVERAGE = 0.5 - 1.0 / COVERAGE_SAMPLES
 
 
 def _subdivide(p: np.ndarray, spacing: float):
@@ -1266,7 +1272,7 @@ def _finish_volume_kernel(hit, m, r, total, moment, busy, b0, b1, vis, gaps):
                     cover = count / (m * m)
                     trans = np.float32(1.0 - cover)
                     offset = moment[axis, plane, iu, iv] / w if w > 0.0 else 0.0
-                    d = offset if cover > 0.5 else 0.0
+                    d = offset if cover > GAP_COVERAGE else 0.0
                     up = np.float32(d if (d > 0.0 or math.isnan(d)) else 0.0)
                     down = np.float32(-d if (-d > 0.0 or math.isnan(d)) else 0.0)
                 if plane >= 1:
