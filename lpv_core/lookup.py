@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import sh
+from .geometry_volume import GAP_COVERAGE
 from .grid import Grid
 from .injection import trilinear_corners, visible_corners
 from .kernels import lookup as _compiled
@@ -21,6 +22,9 @@ from .runtime import jit
 REPROJECTION_GAIN = np.pi / (sh.C0**2 + sh.C1**2)  # = 12/7
 OFFSET_CELLS = 0.5  # receivers read half a cell along their normal [KD10 sec. 4.4]
 PLANE_TOLERANCE = 1e-3  # cells: a corner centred on the receiver's plane stays (scale-stable)
+# A face whose surface covers over GAP_COVERAGE of it stands for that surface (its gap, where
+# lookups do not sample): lookups read it as closed (lookup_visibility), propagation as it is
+OPEN_FOR_LOOKUP = 1.0 - GAP_COVERAGE
 
 
 def sample(grid: Grid, values: np.ndarray, positions: np.ndarray,
@@ -44,6 +48,17 @@ def sample(grid: Grid, values: np.ndarray, positions: np.ndarray,
     for k in range(8):
         out += wts[k][:, None] * flat[idx[k]]
     return out.reshape(m, 3, k_coeffs)
+
+
+def lookup_visibility(visibility: np.ndarray | None) -> np.ndarray | None:
+    """The face transmittances a lookup reads (6, R, R, R): those below OPEN_FOR_LOOKUP, faces
+    mostly covered by a surface, closed. A room's wall in a cell its corner cuts leaves the
+    face part-open (the part outside the room); read as open, the receivers in the room by
+    that wall read the cell beyond it, the sunlit outside's light."""
+    if visibility is None:
+        return None
+    v = np.asarray(visibility, np.float32)
+    return np.where(v < OPEN_FOR_LOOKUP, np.float32(0.0), v)
 
 
 def front_corners(coords: np.ndarray, wts: np.ndarray, normals: np.ndarray) -> np.ndarray:
@@ -119,7 +134,8 @@ def irradiance(
     band 2 (Ramamoorthi & Hanrahan 2001): a beam, an isotropic field and a uniform hemisphere
     (light leaving a lit floor: a floor receives none of it) all come out right to within the
     kernel's band 4. It leaves out the corners behind the receiver's own plane
-    (front_corners), which lies OFFSET_CELLS behind the sample point: with ``offset_cells=0``
+    (front_corners), which lies OFFSET_CELLS behind the sample point, and reads faces a
+    surface mostly covers as closed (lookup_visibility): with ``offset_cells=0``
     the ``positions`` are sample points (sample_points). ``angular="sh"`` (KD10's grid, 4 coefficients): the clamped cosine lobe of the module docstring, times KD10's
     gradient damping (``gradient_damping``).
     """
@@ -129,8 +145,9 @@ def irradiance(
         return _compiled.irradiance(grid, values, positions, normals, offset_cells, angular,
                                     visibility)
     at = positions + normals * (offset_cells * grid.cell_size)
-    front = normals if values.shape[-1] == sh.BANDS2 else None  # KD10's baseline reads all 8
-    coeffs = sample(grid, values, at, visibility, front)
+    dom = values.shape[-1] == sh.BANDS2  # KD10's baseline reads all 8, through open faces
+    coeffs = sample(grid, values, at, lookup_visibility(visibility) if dom else visibility,
+                    normals if dom else None)
     if coeffs.shape[-1] == sh.BANDS2:
         e = np.einsum("mcs,ms->mc", coeffs, sh.irradiance_weights(normals))
         return np.maximum(e / (grid.cell_size**2), 0.0)

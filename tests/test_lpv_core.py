@@ -661,7 +661,8 @@ def test_a_corner_cells_wall_keeps_its_gap_and_the_room_reads_no_light_from_outs
     (5, 2, 4) the side wall and the roof leave that face 0.66 x 0.78 = 0.52 covered, sampled
     5/8 x 6/8 = 0.47. It still counts as the wall's (geometry_volume.GAP_COVERAGE): a receiver
     on the roof in the slab reads the room's side, not the cell outside (100x brighter here);
-    with the face left gap-free it read over 20x the room's light there."""
+    with the face left gap-free it read over 20x the room's light there. And a receiver just
+    beyond the slab reads the face as closed, not as the part-open face propagation sees."""
     room = demo.box_triangles((1.0, 2.7, 0.5), (5.66, 6.0, 4.78), inward=True)
     g = grid.Grid((0.0, 0.0, 0.0), 1.0, 8)
     with (contextlib.nullcontext() if compiled else jit.disabled()):
@@ -682,6 +683,13 @@ def test_a_corner_cells_wall_keeps_its_gap_and_the_room_reads_no_light_from_outs
     assert at[0, 1] == pytest.approx(3.5)  # moved across the plane, to the room's cell centre
     np.testing.assert_allclose(e, room_light, rtol=1e-5)
     assert plain.min() > 20.0 * room_light  # what the slab's point read without the gap
+    # beyond the slab (sample point y = 3.15, 0.35 of its trilinear weight on the cell outside):
+    # the face is the wall's to lookups too (lookup.lookup_visibility), not 0.53 open
+    beside = np.array([[5.3, 3.15, 4.78]])
+    with (contextlib.nullcontext() if compiled else jit.disabled()):
+        e = lookup.irradiance(g, values, lookup.sample_points(g, beside, down, gaps), down,
+                              offset_cells=0.0, visibility=vis)
+    np.testing.assert_allclose(e, room_light, rtol=1e-5)  # (20x it through the open 0.53)
 
 
 def test_no_dark_seam_where_a_wall_meets_a_snapped_ceiling():

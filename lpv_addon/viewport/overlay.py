@@ -364,11 +364,12 @@ def _axis_textures(grid, per_face: np.ndarray, fmt: str):
 
 
 def visibility_textures(grid, visibility):
-    """(+x, +y, +z) and (-x, -y, -z) transmittances of each cell as two RGBA16F 3D textures
-    (propagation.AXES order: +x, -x, +y, -y, +z, -z); None when nothing blocks."""
+    """(+x, +y, +z) and (-x, -y, -z) transmittances of each cell as the lookup reads them
+    (lookup.lookup_visibility) as two RGBA16F 3D textures (propagation.AXES order: +x, -x, +y,
+    -y, +z, -z); None when nothing blocks."""
     if visibility is None:
         return None
-    return _axis_textures(grid, visibility, "RGBA16F")
+    return _axis_textures(grid, core.lookup.lookup_visibility(visibility), "RGBA16F")
 
 
 def gap_textures(grid, gaps):

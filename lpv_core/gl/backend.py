@@ -79,7 +79,8 @@ def _defines() -> dict:
     return {"LOCAL": LOCAL, "SLOTS": _dom_layout()[1],
             # sh.irradiance_weights: A_l Y_lm, A_l the clamped cosine's band-l factor
             "W0": _lit(k0 * sh.Y0), "W1": _lit(k1 * sh.Y1), "W2": _lit(k2),
-            "Y2A": _lit(sh.Y2A), "Y2B": _lit(sh.Y2B), "Y2C": _lit(sh.Y2C)}
+            "Y2A": _lit(sh.Y2A), "Y2B": _lit(sh.Y2B), "Y2C": _lit(sh.Y2C),
+            "LOOKUP_OPEN": _lit(lookup.OPEN_FOR_LOOKUP)}  # lookup.lookup_visibility
 
 
 def source(name: str) -> str:

@@ -10,8 +10,10 @@ import numpy as np
 from .. import sh
 from ..grid import Grid
 from ..runtime import jit, pool
+from .geometry_volume import GAP_COVERAGE
 
 _PLANE = 0.5 + 1e-3  # lookup.OFFSET_CELLS + lookup.PLANE_TOLERANCE (front_corners)
+_OPEN = 1.0 - GAP_COVERAGE  # lookup.OPEN_FOR_LOOKUP (lookup_visibility)
 
 
 def gap_corrected(grid: Grid, positions: np.ndarray, gaps: np.ndarray) -> np.ndarray:
@@ -121,10 +123,12 @@ def _irradiance_kernel(origin, cell, r, flat, vis, kernel, pos, nrm, offset, out
                         factor = 1.0
                         for axis, d in enumerate((dx, dy, dz)):
                             step = d - near[axis]
+                            t = 1.0
                             if step > 0:
-                                factor *= vis[2 * axis, c]
+                                t = vis[2 * axis, c]
                             elif step < 0:
-                                factor *= vis[2 * axis + 1, c]
+                                t = vis[2 * axis + 1, c]
+                            factor *= t if t >= _OPEN else 0.0  # lookup_visibility
                         seen[k] = w[k] * factor
                         total += seen[k]
                         original += w[k]

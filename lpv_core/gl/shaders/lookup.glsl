@@ -31,7 +31,7 @@ vec3 cell_coords(dvec3 p, dvec3 n, out ivec3 ic0, out ivec3 near) {
 // injection.trilinear_corners' weights (zero outside the grid) less the corners behind the
 // receiver's plane (lookup.front_corners: ahead of -PLANE cells along n), renormalised, and,
 // with use_vis, injection.visible_corners: each corner x the transmittance of the faces the
-// step from the nearest cell to it crosses, renormalised to the inside weight (the weights
+// step from the nearest cell to it crosses (lookup.lookup_visibility: below LOOKUP_OPEN, 0), renormalised to the inside weight (the weights
 // before it where every corner is hidden)
 const float PLANE = 0.5 + 1e-3;  // lookup.OFFSET_CELLS + lookup.PLANE_TOLERANCE
 void corner_weights(vec3 fr, ivec3 ic0, ivec3 near, vec3 n, out float w[8]) {
@@ -61,8 +61,10 @@ void corner_weights(vec3 fr, ivec3 ic0, ivec3 near, vec3 n, out float w[8]) {
         if (use_vis != 0) {
             for (int a = 0; a < 3; ++a) {
                 int st = d[a] - near[a];
-                if (st > 0) wk *= vis[uint(2 * a) * cells + fc];
-                else if (st < 0) wk *= vis[uint(2 * a + 1) * cells + fc];
+                float t = 1.0;
+                if (st > 0) t = vis[uint(2 * a) * cells + fc];
+                else if (st < 0) t = vis[uint(2 * a + 1) * cells + fc];
+                wk *= t < LOOKUP_OPEN ? 0.0 : t;  // lookup.lookup_visibility
             }
         }
         w[k] = wk;
