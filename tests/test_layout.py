@@ -39,9 +39,10 @@ PACKAGES = ("lpv_core", "lpv_addon")
 # box about 85 more (21,695 then); the hard filter's taps that went round an occluder (a
 # closed room's inner edges under the World) about 80 more (21,776 then); the lookup's
 # corners in front of the receiver's own plane (a room of single faces) about 70 more (21,844
-# then). The cap catches duplicated code growing back; raise it only for new behaviour, by what that
+# then); the gaps of a room corner's cells and the faces lookups read as closed about 30 more
+# (21,876 then). The cap catches duplicated code growing back; raise it only for new behaviour, by what that
 # behaviour measures.
-ZIP_PYTHON_LINES = 21_850
+ZIP_PYTHON_LINES = 21_880
 
 
 def _module_name(path: Path) -> str:
