@@ -135,9 +135,10 @@ def irradiance(
     (light leaving a lit floor: a floor receives none of it) all come out right to within the
     kernel's band 4. It leaves out the corners behind the receiver's own plane
     (front_corners), which lies OFFSET_CELLS behind the sample point, and reads faces a
-    surface mostly covers as closed (lookup_visibility): with ``offset_cells=0``
-    the ``positions`` are sample points (sample_points). ``angular="sh"`` (KD10's grid, 4 coefficients): the clamped cosine lobe of the module docstring, times KD10's
-    gradient damping (``gradient_damping``).
+    surface mostly covers as closed (lookup_visibility): with ``offset_cells=0`` the
+    ``positions`` are sample points (sample_points). ``angular="sh"`` (KD10's grid, 4
+    coefficients): the clamped cosine lobe of the module docstring, times KD10's gradient
+    damping (``gradient_damping``).
     """
     positions = np.asarray(positions, np.float64)
     normals = np.asarray(normals, np.float64)
@@ -148,7 +149,7 @@ def irradiance(
     dom = values.shape[-1] == sh.BANDS2  # KD10's baseline reads all 8, through open faces
     coeffs = sample(grid, values, at, lookup_visibility(visibility) if dom else visibility,
                     normals if dom else None)
-    if coeffs.shape[-1] == sh.BANDS2:
+    if dom:
         e = np.einsum("mcs,ms->mc", coeffs, sh.irradiance_weights(normals))
         return np.maximum(e / (grid.cell_size**2), 0.0)
     if angular != "sh":

@@ -80,7 +80,9 @@ def _defines() -> dict:
             # sh.irradiance_weights: A_l Y_lm, A_l the clamped cosine's band-l factor
             "W0": _lit(k0 * sh.Y0), "W1": _lit(k1 * sh.Y1), "W2": _lit(k2),
             "Y2A": _lit(sh.Y2A), "Y2B": _lit(sh.Y2B), "Y2C": _lit(sh.Y2C),
-            "LOOKUP_OPEN": _lit(lookup.OPEN_FOR_LOOKUP)}  # lookup.lookup_visibility
+            # lookup.front_corners' plane and lookup.lookup_visibility's limit, in cells
+            "LOOKUP_PLANE": _lit(lookup.OFFSET_CELLS + lookup.PLANE_TOLERANCE),
+            "LOOKUP_OPEN": _lit(lookup.OPEN_FOR_LOOKUP)}
 
 
 def source(name: str) -> str:

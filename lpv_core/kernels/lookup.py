@@ -31,8 +31,8 @@ def irradiance(grid: Grid, values: np.ndarray, positions: np.ndarray, normals: n
                visibility: np.ndarray | None = None) -> np.ndarray:
     """lookup.irradiance of a 9-coefficient grid (which ``angular`` does not change) at float64
     points (M >= 1, 3) by ``_irradiance_kernel``: the same float64 arithmetic as lookup.sample
-    (trilinear, front_corners, visible_corners) and sh.irradiance_weights, point by point (1280x720 points at
-    32^3: numpy ~1.6 s)."""
+    (trilinear, front_corners, visible_corners through lookup_visibility) and
+    sh.irradiance_weights, point by point (1280x720 points at 32^3: numpy ~1.6 s)."""
     r = grid.resolution
     flat = np.ascontiguousarray(values, np.float32).reshape(r**3, 3 * sh.BANDS2)
     vis = (np.zeros((0, 0), np.float32) if visibility is None
@@ -52,9 +52,8 @@ def _irradiance_kernel(origin, cell, r, flat, vis, kernel, pos, nrm, offset, out
                        m1):  # pragma: no cover - compiled
     """``irradiance`` (9 coefficients) of points m0..m1-1: the sample point ``offset`` cells
     along the normal, grid.cell_coords, injection.trilinear_corners (corners outside get
-    weight 0), lookup.front_corners, injection.visible_corners with ``vis`` (6, R^3) (none
-    when empty), the
-    trilinear sum in corner order, the band 0-2 irradiance weights of -n, / s^2, >= 0."""
+    weight 0), lookup.front_corners, injection.visible_corners with ``vis`` (6, R^3) read as
+    lookup.lookup_visibility does (none when empty), the trilinear sum in corner order, the band 0-2 irradiance weights of -n, / s^2, >= 0."""
     has_vis = vis.shape[0] > 0
     s2 = cell * cell
     w = np.empty(8)

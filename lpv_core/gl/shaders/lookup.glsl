@@ -29,11 +29,11 @@ vec3 cell_coords(dvec3 p, dvec3 n, out ivec3 ic0, out ivec3 near) {
 }
 
 // injection.trilinear_corners' weights (zero outside the grid) less the corners behind the
-// receiver's plane (lookup.front_corners: ahead of -PLANE cells along n), renormalised, and,
-// with use_vis, injection.visible_corners: each corner x the transmittance of the faces the
-// step from the nearest cell to it crosses (lookup.lookup_visibility: below LOOKUP_OPEN, 0), renormalised to the inside weight (the weights
-// before it where every corner is hidden)
-const float PLANE = 0.5 + 1e-3;  // lookup.OFFSET_CELLS + lookup.PLANE_TOLERANCE
+// receiver's plane (lookup.front_corners: ahead of -LOOKUP_PLANE cells along n),
+// renormalised, and, with use_vis, injection.visible_corners: each corner x the
+// transmittance of the faces the step from the nearest cell to it crosses
+// (lookup.lookup_visibility: below LOOKUP_OPEN, 0), renormalised to the inside weight (the
+// weights before it where every corner is hidden)
 void corner_weights(vec3 fr, ivec3 ic0, ivec3 near, vec3 n, out float w[8]) {
     float tri[8];
     float plain[8];
@@ -46,7 +46,7 @@ void corner_weights(vec3 fr, ivec3 ic0, ivec3 near, vec3 n, out float w[8]) {
         vec3 wv = mix(1.0 - fr, fr, vec3(d));
         tri[k] = inside ? wv.x * wv.y * wv.z : 0.0;
         original += tri[k];
-        plain[k] = dot(vec3(d) - fr, n) > -PLANE ? tri[k] : 0.0;
+        plain[k] = dot(vec3(d) - fr, n) > -LOOKUP_PLANE ? tri[k] : 0.0;
         front += plain[k];
     }
     float fs = front > 0.0 ? original / front : 0.0;
