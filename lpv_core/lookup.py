@@ -143,8 +143,8 @@ def irradiance(
     positions = np.asarray(positions, np.float64)
     normals = np.asarray(normals, np.float64)
     if jit.enabled() and values.shape[-1] == sh.BANDS2 and positions.shape[0]:
-        return _compiled.irradiance(grid, values, positions, normals, offset_cells, angular,
-                                    visibility)
+        return _compiled.irradiance(grid, values, positions, normals, offset_cells,
+                                    OFFSET_CELLS + PLANE_TOLERANCE, OPEN_FOR_LOOKUP, visibility)
     at = positions + normals * (offset_cells * grid.cell_size)
     dom = values.shape[-1] == sh.BANDS2  # KD10's baseline reads all 8, through open faces
     coeffs = sample(grid, values, at, lookup_visibility(visibility) if dom else visibility,

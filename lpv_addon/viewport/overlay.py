@@ -63,7 +63,8 @@ void main() {
 }
 """
 
-FRAGMENT_SOURCE = """
+_PLANE = core.lookup.OFFSET_CELLS + core.lookup.PLANE_TOLERANCE  # front_corners', in cells
+FRAGMENT_SOURCE = f"const float PLANE = {_PLANE!r};\n" + """
 const float PI = 3.14159265358979;
 /* sh.irradiance_weights: Y(-n) x (pi, 2 pi / 3, pi / 4) per band */
 const float K0 = 0.886226925452758;       /* pi Y0 */
@@ -71,7 +72,6 @@ const float K1 = 1.0233267079464885;      /* 2 pi / 3 Y1 */
 const float K2A = 0.8580855308097834;     /* pi / 4 Y2A */
 const float K2B = 0.2477079561003757;     /* pi / 4 Y2B */
 const float K2C = 0.4290427654048917;     /* pi / 4 Y2C */
-const float PLANE = 0.501;  /* lookup.OFFSET_CELLS + lookup.PLANE_TOLERANCE, in cells */
 
 /* textures.sample in GLSL (Cycles' CPU image kernel) with texelFetch: codes in tex_mode */
 int wrap(int i, int n, int ext) {

@@ -10,10 +10,6 @@ import numpy as np
 from .. import sh
 from ..grid import Grid
 from ..runtime import jit, pool
-from .geometry_volume import GAP_COVERAGE
-
-_PLANE = 0.5 + 1e-3  # lookup.OFFSET_CELLS + lookup.PLANE_TOLERANCE (front_corners)
-_OPEN = 1.0 - GAP_COVERAGE  # lookup.OPEN_FOR_LOOKUP (lookup_visibility)
 
 
 def gap_corrected(grid: Grid, positions: np.ndarray, gaps: np.ndarray) -> np.ndarray:
@@ -27,12 +23,13 @@ def gap_corrected(grid: Grid, positions: np.ndarray, gaps: np.ndarray) -> np.nda
 
 
 def irradiance(grid: Grid, values: np.ndarray, positions: np.ndarray, normals: np.ndarray,
-               offset_cells: float, angular: str = "dom",
+               offset_cells: float, plane: float, open_for_lookup: float,
                visibility: np.ndarray | None = None) -> np.ndarray:
-    """lookup.irradiance of a 9-coefficient grid (which ``angular`` does not change) at float64
-    points (M >= 1, 3) by ``_irradiance_kernel``: the same float64 arithmetic as lookup.sample
-    (trilinear, front_corners, visible_corners through lookup_visibility) and
-    sh.irradiance_weights, point by point (1280x720 points at 32^3: numpy ~1.6 s)."""
+    """lookup.irradiance of a 9-coefficient grid at float64 points (M >= 1, 3) by
+    ``_irradiance_kernel``: the same float64 arithmetic as lookup.sample (trilinear,
+    front_corners behind ``plane`` cells, visible_corners through lookup_visibility's
+    ``open_for_lookup``) and sh.irradiance_weights, point by point (1280x720 points at 32^3:
+    numpy ~1.6 s)."""
     r = grid.resolution
     flat = np.ascontiguousarray(values, np.float32).reshape(r**3, 3 * sh.BANDS2)
     vis = (np.zeros((0, 0), np.float32) if visibility is None
@@ -43,13 +40,14 @@ def irradiance(grid: Grid, values: np.ndarray, positions: np.ndarray, normals: n
     out = np.empty((pos.shape[0], 3), np.float64)
     pool.in_parts(lambda sl: _irradiance_kernel(
         grid.origin_array, float(grid.cell_size), r, flat, vis, kernel, pos, nrm,
-        float(offset_cells), out, sl.start, sl.stop), pos.shape[0])
+        float(offset_cells), float(plane), float(open_for_lookup), out, sl.start, sl.stop),
+        pos.shape[0])
     return out
 
 
 @jit.kernel
-def _irradiance_kernel(origin, cell, r, flat, vis, kernel, pos, nrm, offset, out, m0,
-                       m1):  # pragma: no cover - compiled
+def _irradiance_kernel(origin, cell, r, flat, vis, kernel, pos, nrm, offset, plane, open_,
+                       out, m0, m1):  # pragma: no cover - compiled
     """``irradiance`` (9 coefficients) of points m0..m1-1: the sample point ``offset`` cells
     along the normal, grid.cell_coords, injection.trilinear_corners (corners outside get
     weight 0), lookup.front_corners, injection.visible_corners with ``vis`` (6, R^3) read as
@@ -98,7 +96,7 @@ def _irradiance_kernel(origin, cell, r, flat, vis, kernel, pos, nrm, offset, out
                 for dz in range(2):
                     ahead = ((bx + dx - cx) * nx + (by + dy - cy) * ny + (bz + dz - cz) * nz)
                     original += w[k]
-                    if ahead > -_PLANE:
+                    if ahead > -plane:
                         seen[k] = w[k]
                     else:
                         seen[k] = 0.0
@@ -127,7 +125,7 @@ def _irradiance_kernel(origin, cell, r, flat, vis, kernel, pos, nrm, offset, out
                                 t = vis[2 * axis, c]
                             elif step < 0:
                                 t = vis[2 * axis + 1, c]
-                            factor *= t if t >= _OPEN else 0.0  # lookup_visibility
+                            factor *= t if t >= open_ else 0.0  # lookup_visibility
                         seen[k] = w[k] * factor
                         total += seen[k]
                         original += w[k]
