@@ -50,8 +50,9 @@ def _irradiance_kernel(origin, cell, r, flat, vis, kernel, pos, nrm, offset, pla
                        out, m0, m1):  # pragma: no cover - compiled
     """``irradiance`` (9 coefficients) of points m0..m1-1: the sample point ``offset`` cells
     along the normal, grid.cell_coords, injection.trilinear_corners (corners outside get
-    weight 0), lookup.front_corners, injection.visible_corners with ``vis`` (6, R^3) read as
-    lookup.lookup_visibility does (none when empty), the trilinear sum in corner order, the band 0-2 irradiance weights of -n, / s^2, >= 0."""
+    weight 0), lookup.front_corners behind ``plane``, injection.visible_corners with ``vis``
+    (6, R^3) read as lookup.lookup_visibility does with ``open_`` (none when empty), the
+    trilinear sum in corner order, the band 0-2 irradiance weights of -n, / s^2, >= 0."""
     has_vis = vis.shape[0] > 0
     s2 = cell * cell
     w = np.empty(8)
