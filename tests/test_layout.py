@@ -40,9 +40,10 @@ PACKAGES = ("lpv_core", "lpv_addon")
 # closed room's inner edges under the World) about 80 more (21,776 then); the lookup's
 # corners in front of the receiver's own plane (a room of single faces) about 70 more (21,844
 # then); the gaps of a room corner's cells and the faces lookups read as closed about 30 more
-# (21,876 then). The cap catches duplicated code growing back; raise it only for new behaviour, by what that
+# (21,876 then); the soft filter's contact layer (the own texel's surface, resolved by the hard
+# filter) about 32 more (21,912 then). The cap catches duplicated code growing back; raise it only for new behaviour, by what that
 # behaviour measures.
-ZIP_PYTHON_LINES = 21_880
+ZIP_PYTHON_LINES = 21_915
 
 
 def _module_name(path: Path) -> str:

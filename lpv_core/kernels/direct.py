@@ -860,6 +860,7 @@ def _pcss(lp, mats, ortho, scale, depths, face_view, single, res, sun, round_, s
     sb = _frac_hash(px, py, pz, hashes, 4)
     count = 0
     total = 0.0
+    d_own = np.inf
     for k in range(SEARCH_SIDE * SEARCH_SIDE + 1):
         if k < SEARCH_SIDE * SEARCH_SIDE:
             x, y, z = _tap(k, SEARCH_SIDE, sa, sb, round_, ux, uy, uz, vx, vy, vz, s, sun, lp,
@@ -868,20 +869,23 @@ def _pcss(lp, mats, ortho, scale, depths, face_view, single, res, sun, round_, s
             x, y, z = qx, qy, qz  # the receiver's own texel
         dep, blocked = _lookup(lp, mats, ortho, scale, depths, face_view, single, res, x, y, z,
                                qx, qy, qz, nx, ny, nz, dist, bias)
+        if k == SEARCH_SIDE * SEARCH_SIDE:
+            d_own = dep
         if blocked:
             count += 1
             total += dep
     if count == 0:
         return 1.0
     t_b = total / count
-    if sun:
-        s = max(dist - t_b, 0.0)
-        width_px = s * srad / texel
-    else:
-        s = min(max(t_b / dist, 1e-6), 1.0)
-        width_px = extent * (1.0 - s) / (s * dist) / texel
+    s, width_px = _footprint(sun, srad, extent, dist, texel, t_b)
     if not width_px >= 1.0:
         return hard
+    # direct._soft: the own texel's surface nearer than the receiver and the blockers' mean,
+    # its penumbra under a texel: the contact layer, resolved by the hard filter
+    contact = (d_own > t_b and d_own < dist - bias
+               and _footprint(sun, srad, extent, dist, texel, d_own)[1] < 1.0)
+    if contact and hard <= 0.0:
+        return 0.0
     # direct._tap_weights: each stratum's form factor (the sun's: equal)
     ax, ay, az = uy * vz - uz * vy, uz * vx - ux * vz, ux * vy - uy * vx
     umbra = hard <= 0.0  # direct._soft: then a tap past every surface counts as blocked
@@ -915,4 +919,16 @@ def _pcss(lp, mats, ortho, scale, depths, face_view, single, res, sun, round_, s
             if not (blocked or (umbra and dep == np.inf)):
                 seen += 1.0
         total = FILTER_SIDE * FILTER_SIDE
+    if contact:  # every stratum's ray also passes the contact layer
+        return seen / total * hard
     return seen / total
+
+
+@jit.kernel
+def _footprint(sun, srad, extent, dist, texel, t_b):  # pragma: no cover
+    """direct._footprint of one receiver: the taps' fraction s and the penumbra in texels."""
+    if sun:
+        s = max(dist - t_b, 0.0)
+        return s, s * srad / texel
+    s = min(max(t_b / dist, 1e-6), 1.0)
+    return s, extent * (1.0 - s) / (s * dist) / texel

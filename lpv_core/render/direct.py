@@ -751,14 +751,19 @@ def _soft(shadow: ShadowMap, src: Source, positions, normals, face_of, p_off, di
     if todo.size == 0:
         return vis
     t_b = np.where(blocked[found], depth[found], 0.0).sum(axis=1) / count[found]
-    if ortho:
-        s = np.maximum(dist[todo] - t_b, 0.0)
-        width_px = s * src.radius / texel[todo]
-    else:
-        s = np.clip(t_b / dist[todo], 1e-6, 1.0)
-        width_px = extent[todo] * (1.0 - s) / (s * dist[todo]) / texel[todo]
+    # the surface on the receiver's own texel, when nearer than the receiver and the blockers'
+    # mean: its layer's penumbra under a texel is the hard filter's to resolve (a wall right
+    # beside the receiver, which the taps at t_b fly past)
+    d_own = depth[found][:, -1]
+    near = (d_own > t_b) & (d_own < dist[todo] - bias[todo])
+    s, width_px = _footprint(src, ortho, dist[todo], texel[todo], extent[todo], t_b)
+    contact = near & (_footprint(src, ortho, dist[todo], texel[todo], extent[todo], d_own)[1]
+                      < 1.0)
     wide = width_px >= 1.0  # narrower penumbrae keep the bilinear filter
-    todo, s = todo[wide], s[wide]
+    shut = wide & contact & (hard[todo] <= 0.0)  # the contact layer shuts out every ray
+    vis[todo[shut]] = 0.0
+    wide &= ~shut
+    todo, s, contact = todo[wide], s[wide], contact[wide]
     if todo.size == 0:
         return vis
     k = FILTER_SIDE * FILTER_SIDE
@@ -772,7 +777,19 @@ def _soft(shadow: ShadowMap, src: Source, positions, normals, face_of, p_off, di
     w = _tap_weights(src, ortho, c, positions[todo], normals[todo], u[todo], v[todo],
                      FILTER_SIDE, sa[todo], sb[todo])
     vis[todo] = (w * ~blocked.reshape(-1, k)).sum(axis=1) / w.sum(axis=1)  # exact 0 and 1
+    # every stratum's ray also passes the contact layer: the hard filter's share of it
+    vis[todo[contact]] *= hard[todo[contact]]
     return vis
+
+
+def _footprint(src: Source, ortho: bool, dist, texel, extent, t_b):
+    """The filter's tap fraction s (the sun: metres of depth) for blockers at depth t_b, and
+    the penumbra's width on the receiver in texels (similar triangles)."""
+    if ortho:
+        s = np.maximum(dist - t_b, 0.0)
+        return s, s * src.radius / texel
+    s = np.clip(t_b / dist, 1e-6, 1.0)
+    return s, extent * (1.0 - s) / (s * dist) / texel
 
 
 def _tap_weights(src: Source, ortho: bool, c, p, n, u, v, side, sa, sb) -> np.ndarray:
