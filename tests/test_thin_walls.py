@@ -138,26 +138,21 @@ def _soft(kind: str, soft: float) -> Light:
     return dataclasses.replace(light, **{"radius" if kind == "point" else "angle": soft})
 
 
-@pytest.mark.parametrize("compiled", [False, True])
-@pytest.mark.parametrize("case", sorted(SOFT_OUTSIDE), ids=lambda c: f"{c[0]}-{c[1]}")
-def test_soft_lights_outside_a_closed_room_pass_little_to_its_edges(case, compiled):
-    if compiled and not jit.enabled():
-        pytest.skip("the kernels are off")
-    pos, nrm = _near_edges(np.random.default_rng(7), 4000)
-    shadowed, open_ = _visibility(_soft(*case), pos, nrm, compiled)
-    assert (open_ > 0).sum() > 1000
-    assert shadowed.sum() <= SOFT_OUTSIDE[case] * open_.sum(), shadowed.sum() / open_.sum()
+SOFT = [(False, case, bound) for case, bound in sorted(SOFT_OUTSIDE.items())] + [
+    (True, case, bound) for case, bound in sorted(SOFT_GROUND.items())]
 
 
 @pytest.mark.parametrize("compiled", [False, True])
-@pytest.mark.parametrize("case", sorted(SOFT_GROUND), ids=lambda c: f"{c[0]}-{c[1]}")
-def test_soft_lights_outside_a_room_on_a_ground_pass_little_to_its_edges(case, compiled):
+@pytest.mark.parametrize("ground, case, bound", SOFT,
+                         ids=[f"{'ground-' if g else ''}{c[0]}-{c[1]}" for g, c, _ in SOFT])
+def test_soft_lights_outside_a_closed_room_pass_little_to_its_edges(ground, case, bound,
+                                                                   compiled):
     if compiled and not jit.enabled():
         pytest.skip("the kernels are off")
     pos, nrm = _near_edges(np.random.default_rng(7), 4000)
-    shadowed, open_ = _visibility(_soft(*case), pos, nrm, compiled, ground=True)
+    shadowed, open_ = _visibility(_soft(*case), pos, nrm, compiled, ground)
     assert (open_ > 0).sum() > 1000
-    assert shadowed.sum() <= SOFT_GROUND[case] * open_.sum(), shadowed.sum() / open_.sum()
+    assert shadowed.sum() <= bound * open_.sum(), shadowed.sum() / open_.sum()
 
 
 @pytest.mark.skipif(not jit.enabled(), reason="LPV_JIT=0: the kernels are off")

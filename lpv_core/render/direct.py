@@ -760,9 +760,7 @@ def _soft(shadow: ShadowMap, src: Source, positions, normals, face_of, p_off, di
     contact = near & (_footprint(src, ortho, dist[todo], texel[todo], extent[todo], d_own)[1]
                       < 1.0)
     wide = width_px >= 1.0  # narrower penumbrae keep the bilinear filter
-    shut = wide & contact & (hard[todo] <= 0.0)  # the contact layer shuts out every ray
-    vis[todo[shut]] = 0.0
-    wide &= ~shut
+    wide &= ~(contact & (hard[todo] <= 0.0))  # shut out by the contact layer: vis = hard = 0
     todo, s, contact = todo[wide], s[wide], contact[wide]
     if todo.size == 0:
         return vis
