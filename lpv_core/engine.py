@@ -130,7 +130,9 @@ class Engine:
         self._plans: dict = {}  # the planner's cascade decisions for the last chain
         self._bounds: Bounds | None = None
         self._focus_cache: Focus | None = None
-        self._cascade_count = None  # planner.cascade_count of the last update (hysteresis)
+        # (cap, count) of the last update's planner.cascade_count: its hysteresis holds a count
+        # for a moving camera, never across a change of the cap (settings.cascades)
+        self._cascade_count = None
         self._count_memo = None  # (inputs, result) of the last cascade_count
         self._last_chain = None  # the cascades of the last update (placement hysteresis)
         self._cache_base = self._cache_chain = None  # the cache's key without inner cascades
@@ -462,15 +464,16 @@ class Engine:
             if settings.cascades_auto:
                 around = self._around[1] if self._around is not None else None
                 space = None if around is None else around.size()
+                last = self._cascade_count
+                previous = last[1] if last is not None and last[0] == settings.cascades else None
                 memo = (self._focus_cache.key, settings.cascades, lo.tobytes(), hi.tobytes(),
-                        self._cascade_count, space)
+                        previous, space)
                 if self._count_memo is None or self._count_memo[0] != memo:
                     eye = np.linalg.inv(np.asarray(scene.camera.view, np.float64))[:3, 3]
                     self._count_memo = (memo, planner.cascade_count(
-                        settings.cascades, lo, hi, eye, focus, sky, self._cascade_count,
-                        space))
+                        settings.cascades, lo, hi, eye, focus, sky, previous, space))
                 count, why = self._count_memo[1]
-                self._cascade_count = count
+                self._cascade_count = (settings.cascades, count)
                 stats.info["cascade_count"] = {"count": count, "why": why}
                 if count < settings.cascades:
                     stats.skip("cascades", f"{settings.cascades - count} inner cascades", why)
@@ -707,8 +710,11 @@ class Engine:
         return rsm, _vpl_sample(rsm)
 
     def clear_cache(self) -> None:
-        """Forget cached grids and shadow maps: the next update recomputes everything."""
+        """Forget cached grids and shadow maps, and the last view's cascade count and placement
+        (their hysteresis): the next update recomputes everything, as a new Engine's would."""
         self._cache_key, self._lights, self._volumes = None, {}, {}
+        self._focus_cache = self._around = None
+        self._cascade_count = self._count_memo = self._last_chain = None
         self._shadows.clear()
         self.source_maps.reset(None)
         self._shadow_memo = self._rsm_memo = None

@@ -343,6 +343,39 @@ def test_cascade_count_holds_within_the_hysteresis_band():
     assert at(0.4, None) == 1 and at(0.4, 2) == 2 and at(0.2, 2) == 1
 
 
+def test_engine_holds_a_cascade_count_for_a_moving_camera_only():
+    """The count the hysteresis holds is the last update's under the same cap: after the camera
+    moves within the band it stays, but a changed settings.cascades or a clear_cache decides
+    afresh (a settings sweep's runs, each from cleared caches, do not depend on their order)."""
+    from lpv_core import engine
+
+    def view(height: float, cap: int = 3):
+        sc = demo.outdoor((48, 32), GISettings(grid_resolution=8, rsm_resolution=32,
+                                               cascades=cap))
+        sc.camera = Camera.look_at((0.0, -60.0, height), (0.0, 40.0, 8.0),
+                                   fov_y=np.radians(50), resolution=(48, 32), near=0.1,
+                                   far=500.0)
+        return sc
+
+    def count(eng, sc) -> int:
+        stats = Stats()
+        eng.update(sc, stats)
+        return stats.info["cascade_count"]["count"]
+
+    stats = Stats()
+    engine.Engine().update(view(50.0), stats)
+    ratio = float(stats.info["cascade_count"]["why"].split("log2 ratio ")[1].split(")")[0])
+    assert 1.5 <= ratio < 1.5 + planner.COUNT_HYSTERESIS  # 3 afresh, 2 held from below
+    assert stats.info["cascade_count"]["count"] == 3
+    eng = engine.Engine()
+    assert count(eng, view(60.0)) == 2 and count(eng, view(50.0)) == 2  # moved: held
+    eng.clear_cache()
+    assert count(eng, view(50.0)) == 3
+    eng = engine.Engine()
+    assert count(eng, view(50.0, cap=2)) == 2
+    assert count(eng, view(50.0)) == 3  # the cap raised to 3: not held at the old cap's 2
+
+
 def test_engine_picks_the_cascade_count_per_view_and_says_why():
     """On built scenes: the street-level outdoor view gets all 3 cascades, a camera inside a
     closed room and the Cornell box seen from outside get one; the stats say why."""

@@ -159,6 +159,8 @@ def test_time_cap_interrupts_and_restores():
 @pytest.fixture(scope="module")
 def quick(tmp_path_factory):
     out = tmp_path_factory.mktemp("report")
+    (out / "sources_other_tool.png").write_bytes(b"another tool's figure")  # must stay
+    (out / "gone_scene_images.png").write_bytes(b"a stale figure of this report")  # replaced
     t0 = time.perf_counter()
     proc = subprocess.run(
         [sys.executable, "-m", "tools.report", "--quick", "--out", str(out),
@@ -178,7 +180,9 @@ def test_quick_report_writes_readme_figures_and_numbers(quick):
         assert heading in readme, heading
     assert ("Where LPV is worse than Cycles at equal time" in readme
             or "not worse than Cycles at equal time" in readme)
-    pngs = sorted(p.name for p in out.glob("*.png"))
+    pngs = sorted({p.name for pattern in report.OWN_FIGURES for p in out.glob(pattern)})
+    assert "gone_scene_images.png" not in pngs  # the last run's figures are replaced
+    assert (out / "sources_other_tool.png").read_bytes() == b"another tool's figure"
     assert {"cornell_spot_error_vs_time.png", "cornell_spot_images.png",
             "stability_invariance.png", "stability_energy.png"} <= set(pngs)
     for name in pngs:

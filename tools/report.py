@@ -51,6 +51,9 @@ ROOT = Path(__file__).resolve().parents[1]
 # Profiles
 # ---------------------------------------------------------------------------------------------
 
+# The figures this report writes (a scene's two, the stability suite's): a run replaces them
+# and leaves the other tools' figures in the same folder (tools.sources_check's sources_*.png)
+OWN_FIGURES = ("*_error_vs_time.png", "*_images.png", "stability_*.png")
 PROFILES: dict[str, dict] = {
     "full": {
         "scenes": ("cornell_spot", "sunlit_room", "city", "point_room", "library"),
@@ -1634,8 +1637,9 @@ def main(argv: list[str] | None = None) -> int:
                and s not in scene_builders.BUILDERS]
     if unknown:
         p.error(f"unknown scene(s): {', '.join(unknown)}")
-    for old in out.glob("*.png"):
-        old.unlink()
+    for pattern in OWN_FIGURES:  # this report's figures: other tools' (sources_*) stay
+        for old in out.glob(pattern):
+            old.unlink()
     res = args.resolution or prof["resolution"]
     from tools import stability  # imported now: a long run keeps the code it started with
     data: dict = {"scenes": [], "stability": None, "failed": []}
