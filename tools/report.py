@@ -1568,11 +1568,12 @@ def _extra(v) -> str:
 
 
 def _git_commit(out: Path | None = None) -> str:
-    """HEAD, and whether tracked files differ from it (the report's own output aside)."""
+    """HEAD, and whether tracked files differ from it (the report's own output and the docs,
+    which do not change a run, aside)."""
     try:
         rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT,
                              capture_output=True, text=True, check=True).stdout.strip()
-        spec = ["--", "."]
+        spec = ["--", ".", ":!docs"]
         if out is not None and out.resolve().is_relative_to(ROOT):
             spec.append(f":!{out.resolve().relative_to(ROOT)}")
         dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", *spec],
