@@ -2,7 +2,7 @@
 ``--preset``."""
 
 SETTINGS = {
-    "DRAFT": {"grid_resolution": 12, "rsm_resolution": 128, "cascades": 3},
-    "PREVIEW": {"grid_resolution": 16, "rsm_resolution": 256, "cascades": 3},
-    "HIGH": {"grid_resolution": 24, "rsm_resolution": 512, "cascades": 3},
+    "DRAFT": {"grid_resolution": 16, "rsm_resolution": 128, "cascades": 3},
+    "PREVIEW": {"grid_resolution": 32, "rsm_resolution": 256, "cascades": 3},
+    "HIGH": {"grid_resolution": 48, "rsm_resolution": 512, "cascades": 3},
 }

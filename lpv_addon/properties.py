@@ -24,12 +24,13 @@ from .viewport import live
 # Quality presets: name -> (label, description, settings). Figures only where the report
 # (docs/report/README.md) measured the preset: Preview is its "LPV defaults" column.
 PRESETS = {
-    "DRAFT": ("Draft", "12^3 grid, 128^2 light maps: the fastest, coarsest bounced light",
+    "DRAFT": ("Draft", "16^3 grid, 128^2 light maps: the fastest, coarsest bounced light",
               PRESET_SETTINGS["DRAFT"]),
-    "PREVIEW": ("Preview", ("The default, 16^3 grid and 256^2 light maps: indirect error 0.166 "
+    "PREVIEW": ("Preview", ("The default, 32^3 grid and 256^2 light maps: indirect error 0.166 "
                             "to 0.719 on the report's scenes"),
                 PRESET_SETTINGS["PREVIEW"]),
-    "HIGH": ("High", "24^3 grid, 512^2 light maps: finer bounced light, slower than Preview",
+    "HIGH": ("High", ("48^3 grid, 512^2 light maps: finer bounced light in large open scenes, "
+                       "about twice Preview's time"),
              PRESET_SETTINGS["HIGH"]),
 }
 _APPLYING_PRESET = [False]

@@ -398,18 +398,18 @@ class Engine:
             return LPVResult(None, None, {}, stats)
         with Timer(stats, "change_tracking"):
             geo = geometry_key(scene)
-        lo, hi, chain = self._chain(scene, stats, geo)
-        if settings.angular == "dom":  # a clear error before the RSMs, not a MemoryError
-            sweep.check_memory(settings.grid_resolution, len(chain) > 1)
-        grid = chain[-1]
         active = _active_lights(scene, stats)
+        with Timer(stats, "change_tracking"):
+            refl = reflectance_key(scene)
+        srcs = sources.gi_sources(scene, refl, stats)  # the World, emissive materials
+        lo, hi, chain = self._chain(scene, stats, geo, len(active) + len(srcs))
+        if settings.angular == "dom":  # a clear error before the RSMs, not a MemoryError
+            sweep.check_memory(chain[-1].resolution, len(chain) > 1)
+        grid = chain[-1]
         with Timer(stats, "change_tracking"):
             content = content_key(scene, geo)
             key = scene_key(scene, chain, content=content)
             base = scene_key(scene, chain[-1:], content=content)  # inner cascades aside
-        with Timer(stats, "change_tracking"):
-            refl = reflectance_key(scene)
-        srcs = sources.gi_sources(scene, refl, stats)  # the World, emissive materials
         if key != self._cache_key and reproject and (active or srcs):
             shifted = self._reprojected(chain, base, active + srcs, stats)
             if shifted is not None:
@@ -453,9 +453,10 @@ class Engine:
                             visibilities, stats, vpl_count, run.iterations, t0,
                             {g: self.gaps(g) for g in chain})
 
-    def _chain(self, scene: Scene, stats: Stats, geo: str):
+    def _chain(self, scene: Scene, stats: Stats, geo: str, entries: int = 1):
         """The LPV box (lo, hi) and this update's cascade chain (finest first): placed around
-        what the camera sees, held still within a cell, pruned by the planner."""
+        what the camera sees, held still within a cell, pruned by the planner; its resolution
+        within the grid budget of ``entries`` lights and sources (budget_resolution)."""
         settings = scene.settings
         lo, hi = self.lpv_bounds(scene, stats, geo)
         focus, count = None, settings.cascades
@@ -477,8 +478,14 @@ class Engine:
                 stats.info["cascade_count"] = {"count": count, "why": why}
                 if count < settings.cascades:
                     stats.skip("cascades", f"{settings.cascades - count} inner cascades", why)
-        chain = self._steady(cascades.place(lo, hi, settings.grid_resolution, count,
-                                            scene.camera, focus))
+        res = budget_resolution(settings, entries, count)
+        if res < settings.grid_resolution:
+            stats.info["grid_reduced"] = {"asked": settings.grid_resolution, "resolution": res,
+                                          "entries": entries}
+            stats.skip("cascades", f"{settings.grid_resolution}^3 cells",
+                       f"{entries} lights and sources keep their grids: past the grid budget "
+                       f"({GRID_BUDGET >> 20} MiB), {res}^3 cascades")
+        chain = self._steady(cascades.place(lo, hi, res, count, scene.camera, focus))
         if len(chain) == 1 and count > 1:
             stats.skip("cascades", f"{count - 1} inner cascades",
                        "no camera to centre them on")
@@ -998,6 +1005,11 @@ FOCUS_PIXELS = 64  # longest side of the G-buffer that finds what the camera see
 SURROUND_PIXELS = 32  # cube map side of what the camera's eye sees all around (surroundings)
 VPL_SAMPLE = 4096  # VPLs per light kept in LPVResult.vpls for debug views
 FLUX_KEPT = 256 * 2**20  # bytes of RSM flux arrays kept for same_vpls (else digests)
+# Bytes of the propagated grids kept per light and source (Engine._lights, 108 bytes a cell):
+# 300 lights at three 16^3 cascades kept 380 MiB; 512 MiB (the shadow cache's budget) holds 50
+# lights at three 32^3 cascades (10.1 MiB each), 300 at one 25^3 cascade or three 17^3.
+GRID_BUDGET = 512 * 2**20
+MIN_BUDGET_RESOLUTION = 8  # cells per side no budget goes below (8^3: 1.5-2.5x the error)
 
 
 class NumpyBackend:
@@ -1106,6 +1118,20 @@ def auto_iterations(resolution: int, angular: str = "dom") -> int:
     if angular == "dom":
         return 3 * resolution
     return max(1, round(resolution / 4))
+
+
+def budget_resolution(settings, entries: int, cascades: int) -> int:
+    """The cascades' resolution: ``settings.grid_resolution`` while the propagated grids that
+    ``entries`` lights and sources keep for incremental updates (``cascades`` sets each, float32
+    coefficients x 3 colours per cell) fit in GRID_BUDGET, else the largest that fits, at
+    least MIN_BUDGET_RESOLUTION."""
+    r = settings.grid_resolution
+    per_cell = 4 * 3 * propagation.coefficients(settings.angular)
+    sets = max(int(entries), 0) * max(int(cascades), 1)
+    if sets == 0 or sets * per_cell * r**3 <= GRID_BUDGET:
+        return r
+    fit = int(np.floor((GRID_BUDGET / (sets * per_cell)) ** (1.0 / 3.0) + 1e-9))
+    return max(min(fit, r), min(MIN_BUDGET_RESOLUTION, r))
 
 
 def _active_lights(scene: Scene, stats: Stats) -> list:

@@ -226,7 +226,7 @@ def test_a_killed_runs_temporary_files_are_removed_by_the_next_run(tmp_path):
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert sorted(p.name for p in out.iterdir()) == sorted(["0001.exr", "stats.json", *kept])
     settings = json.loads((out / "stats.json").read_text())["settings"]
-    assert (settings["grid_resolution"], settings["cascades"]) == (12, 3)  # Draft: 12^3 grid
+    assert (settings["grid_resolution"], settings["cascades"]) == (16, 3)  # Draft: 16^3 grid
     assert settings["rsm_resolution"] == 32
 
 

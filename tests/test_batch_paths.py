@@ -96,7 +96,7 @@ def test_presets_are_one_table_for_the_addon_and_the_cli():
     assert properties.PRESETS.keys() == presets.SETTINGS.keys()
     for key, (_, _, settings) in properties.PRESETS.items():
         assert settings is presets.SETTINGS[key]
-    assert presets.SETTINGS["DRAFT"]["grid_resolution"] == 12  # its label: "12^3 grid"
+    assert presets.SETTINGS["DRAFT"]["grid_resolution"] == 16  # its label: "16^3 grid"
 
 
 @pytest.fixture()

@@ -84,6 +84,36 @@ def test_a_few_lights_keep_the_set_resolutions():
     np.testing.assert_array_equal(out["Diffuse Direct"][mask], (want / np.pi).astype(np.float32))
 
 
+def test_grid_budget_keeps_the_set_resolution_while_the_grids_fit():
+    """Hand-derived (108 bytes a cell: 9 float32 coefficients x 3 colours; 512 MiB): 50 lights
+    x 3 cascades x 32^3 cells = 531 MB fit, 51 do not, floor((2^29 / (153 x 108))^(1/3)) = 31;
+    300 lights: one cascade 25^3, three 17^3; never below 8^3, never above the setting."""
+    s = GISettings(grid_resolution=32)
+    assert engine.budget_resolution(s, 50, 3) == 32
+    assert engine.budget_resolution(s, 51, 3) == 31
+    assert engine.budget_resolution(s, 300, 1) == 25
+    assert engine.budget_resolution(s, 300, 3) == 17
+    assert engine.budget_resolution(s, 10**6, 3) == engine.MIN_BUDGET_RESOLUTION == 8
+    assert engine.budget_resolution(GISettings(grid_resolution=6), 10**6, 3) == 6
+    assert engine.budget_resolution(s, 0, 3) == 32
+
+
+def test_lights_past_the_grid_budget_get_coarser_cascades_and_the_stats_say_so(monkeypatch):
+    """Three point lights' 16^3 grids (3 x 442 KB) past a 1 MiB budget: the cascade is 14^3
+    (floor((2^20 / (3 x 108))^(1/3))), stats name the budget; with two lights it fits."""
+    monkeypatch.setattr(engine, "GRID_BUDGET", 2**20)
+    settings = GISettings(grid_resolution=16, cascades=1, rsm_resolution=32, antialias=1)
+    stats = engine.Stats()
+    res = engine.Engine().update(bench.many_lights_scene(3, (16, 16), settings), stats)
+    assert res.grid.resolution == 14 and not res.fine
+    assert stats.info["grid_reduced"] == {"asked": 16, "resolution": 14, "entries": 3}
+    assert any("grid budget" in s["reason"] for s in stats.skipped)
+    assert all(np.isfinite(v).all() for v in res.per_light.values())
+    stats = engine.Stats()
+    res = engine.Engine().update(bench.many_lights_scene(2, (16, 16), settings), stats)
+    assert res.grid.resolution == 16 and "grid_reduced" not in stats.info
+
+
 def test_many_lights_share_the_budgets_by_their_light():
     """Forty point lights: their cube maps at 1024^2 (960 MiB) do not fit the 512 MiB budget.
     The cache holds at most the budget, the lights that light what the camera sees more get

@@ -215,8 +215,9 @@ def test_quick_report_writes_readme_figures_and_numbers(quick):
         (point,) = scene["peers"][p]
         assert np.isfinite(point["combined"]) and point["software"] is True  # llvmpipe here
     kd10 = scene["peers"][report.PEER_KD10]
-    assert sorted(r["settings"]["grid_resolution"] for r in kd10) == list(
-        quick_prof["kd10_grids"])
+    # the profile's grids, and the defaults' own from the one-at-a-time "angular=sh" row
+    assert sorted({r["settings"]["grid_resolution"] for r in kd10}) == sorted(
+        set(quick_prof["kd10_grids"]) | {GISettings().grid_resolution})
     assert all(r["settings"]["angular"] == report.KD10_ANGULAR for r in kd10)
     assert not any(report._kd10(r) for r in ok if r["label"] in scene["pareto"])
     peers_seen = {v["peer"] for v in scene["peer_verdicts"]}

@@ -139,7 +139,7 @@ class GISettings:
     sh; backend auto, numpy or gl; docs/user-guide.md): construction and ``updated`` raise
     ValueError naming the setting, the value and the range."""
 
-    grid_resolution: int = 16
+    grid_resolution: int = 32
     cascades: int = 3  # at most this many; with cascades_auto the planner picks per view
     cascades_auto: bool = True  # planner.cascade_count: 1 for an enclosed view, more if open
     # Propagation steps of "sh" (0: automatic, engine.auto_iterations). "dom" always solves
