@@ -718,9 +718,9 @@ class Engine:
 
     def clear_cache(self) -> None:
         """Forget cached grids and shadow maps, and the last view's cascade count and placement
-        (their hysteresis): the next update recomputes everything, as a new Engine's would."""
+        (their hysteresis, so that the next update's cascades are a new Engine's): the next
+        update recomputes everything but the view's G-buffers, kept by geometry and camera."""
         self._cache_key, self._lights, self._volumes = None, {}, {}
-        self._focus_cache = self._around = None
         self._cascade_count = self._count_memo = self._last_chain = None
         self._shadows.clear()
         self.source_maps.reset(None)
