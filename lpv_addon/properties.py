@@ -30,7 +30,7 @@ PRESETS = {
                             "to 0.614 on the report's scenes"),
                 PRESET_SETTINGS["PREVIEW"]),
     "HIGH": ("High", ("48^3 grid, 512^2 light maps: finer bounced light in large open scenes, "
-                       "about twice Preview's time"),
+                       "slower than Preview"),
              PRESET_SETTINGS["HIGH"]),
 }
 _APPLYING_PRESET = [False]
