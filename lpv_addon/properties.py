@@ -138,6 +138,9 @@ class LPVSceneSettings(bpy.types.PropertyGroup):
         name="Anti-Aliasing", default=_CORE.antialias, update=_changed, **_limits("antialias"),
         description="Samples per pixel side of rendered frames: smoother edges and sky light, "
                     "longer renders")
+    contact_light: BoolProperty(
+        name="Contact Light", default=_CORE.contact_light, update=_changed,
+        description="Renders add the bounce from surfaces nearer than a cell (not the overlay)")
     occlusion: BoolProperty(name="Occlusion", default=_CORE.occlusion, update=_changed,
                             description="Let objects block bounced light (no light through walls)")
     bounces: IntProperty(name="Bounces", default=_CORE.bounces, update=_changed,

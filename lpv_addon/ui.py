@@ -126,7 +126,8 @@ class LPV_PT_quality(_Sidebar, bpy.types.Panel):
         layout.use_property_split = True
         layout.use_property_decorate = False
         for name in ("grid_resolution", "cascades", "cascades_auto", "rsm_resolution",
-                     "occlusion", "bounces", "backend", "antialias", "refresh_interval",
+                     "occlusion", "bounces", "backend", "antialias", "contact_light",
+                     "refresh_interval",
                      "fade_time"):
             layout.prop(props, name)
 

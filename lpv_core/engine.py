@@ -928,7 +928,7 @@ def same_vpls(flux, other) -> bool:
 
 # Settings the propagated grids do not depend on: the global intensity only re-combines; the
 # others are read by the render (deferred.py) alone.
-RENDER_ONLY = frozenset({"intensity", "antialias", "shadow_resolution"})
+RENDER_ONLY = frozenset({"intensity", "antialias", "shadow_resolution", "contact_light"})
 
 
 def content_key(scene: Scene, geo: str | None = None) -> str:

@@ -156,24 +156,46 @@ def _world_key(k: int, sky_set: tuple[int, int]) -> tuple[int, int, int]:
 
 
 def direct(engine, scene, bounds, positions, normals, stats, material: int | None = None,
-           world: bool = True, gi: bool = False,
-           sky_set: tuple[int, int] = (0, 1)) -> np.ndarray | None:
+           world: bool = True, gi: bool = False, sky_set: tuple[int, int] = (0, 1),
+           weights: dict | None = None):
     """Direct irradiance (M, 3) W/m^2 of the World (``world``; over the GI's directions with
     ``gi``, else the pixels' set ``sky_set``, maps()) and the emitters (of ``material`` only,
-    when given) at receivers; None when none of them sends light."""
+    when given) at receivers; None when none of them sends light. With ``weights`` (source
+    name -> GI weight, gi_weights): (that, the same sum with each source x its weight)."""
     if sky.lit(scene.world) and not emitters.emissive_materials(scene):
-        return None
+        return None if weights is None else (None, None)
     k = sky.DIRECTIONS if gi else sky.RENDER_DIRECTIONS
     sm = maps(engine, scene, bounds, stats, k, sky_set)
     key = _world_key(k, sky_set)
-    e = None
+    e = e_gi = None
+    parts = []
     if world and key in sm.world:
-        e = sky.irradiance(*sm.world[key][1:], positions, normals, pcf=not gi)
+        parts.append((f"World '{scene.world.name}'",
+                      sky.irradiance(*sm.world[key][1:], positions, normals, pcf=not gi)))
     for c, shadow in (sm.clusters[1] if sm.clusters else []):
         if material is None or c.material == material:
-            part = emitters.irradiance(c, shadow, positions, normals)
-            e = part if e is None else e + part
-    return e
+            parts.append((f"emission '{scene.materials[c.material].name}'",
+                          emitters.irradiance(c, shadow, positions, normals)))
+    for name, part in parts:
+        e = part if e is None else e + part
+        w = (weights or {}).get(name, 0.0)
+        if weights is not None and w:
+            e_gi = part * w if e_gi is None else e_gi + part * w
+    return e if weights is None else (e, e_gi)
+
+
+def gi_weights(scene, held) -> dict:
+    """Source name -> the weight combine gives its grids (GI intensity x global intensity) for
+    the World and emissive materials whose grids ``held`` (LPVResult.per_light) holds."""
+    g = float(scene.settings.intensity)
+    out = {}
+    if scene.world is not None and held.get(f"World '{scene.world.name}'") is not None:
+        out[f"World '{scene.world.name}'"] = float(scene.world.gi_intensity) * g
+    for mi in emitters.emissive_materials(scene):
+        m = scene.materials[mi]
+        if held.get(f"emission '{m.name}'") is not None:
+            out[f"emission '{m.name}'"] = float(m.emission_gi_intensity) * g
+    return out
 
 
 def cascade_surfels(positions: np.ndarray, chain: list):

@@ -22,7 +22,8 @@ pytestmark = pytest.mark.bpy
 SCENE_VALUES = {
     "enabled": True, "intensity": 2.5, "quality": "HIGH", "grid_resolution": 24,
     "cascades": 2, "cascades_auto": False, "rsm_resolution": 128, "occlusion": True, "bounces": 2,
-    "backend": "gl", "antialias": 3, "live_update": False, "refresh_interval": 0.5, "fade_time": 1.25,
+    "backend": "gl", "antialias": 3, "contact_light": False, "live_update": False,
+    "refresh_interval": 0.5, "fade_time": 1.25,
     "show_overlay": False, "overlay_mode": "PROBES", "overlay_exposure": -1.5,
     "batch_directory": "//frames_out/", "compare_resolution": 48, "compare_samples": 16,
     "compare_summary": "x", "active_light_index": 2, "active_area_index": 1,

@@ -136,6 +136,7 @@ KNOWN_VALUES = {
     "shadow_resolution": (512, 1024, 2048),
     "backend": ("numpy", "gl"),
     "antialias": (1, 2, 4),  # samples per pixel side of the render (deferred.render)
+    "contact_light": (False, True),  # the render's bounce from within a cell
 }
 # Not quality settings: left at their defaults.
 NOT_SWEPT = frozenset({"intensity"})

@@ -29,7 +29,7 @@ UNSUPPORTED = frozenset({"CURVES", "POINTCLOUD", "VOLUME", "GPENCIL", "GREASEPEN
 # Scene.lpv properties copied into GISettings (see properties.py).
 SCENE_SETTINGS = (
     "grid_resolution", "cascades", "cascades_auto", "rsm_resolution",
-    "occlusion", "bounces", "backend", "intensity", "antialias",
+    "occlusion", "bounces", "backend", "intensity", "antialias", "contact_light",
 )
 
 

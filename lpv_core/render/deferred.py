@@ -15,9 +15,9 @@ import dataclasses
 import numpy as np
 
 from .. import areas, lookup, sky, sources
-from ..engine import Engine, LPVResult, Stats, Timer
+from ..engine import Engine, LPVResult, Stats, Timer, light_weight
 from ..scene.model import Camera, Scene
-from . import direct, raster
+from . import contact, direct, raster
 
 VIEWER_NUDGE_CELLS = 0.02  # toward_viewer's distance in cells of the finest cascade
 PASS_NAMES = ("Combined", "Diffuse Direct", "Diffuse Indirect", "Diffuse Color")
@@ -176,10 +176,13 @@ def even_divide(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.where(ok, ratio, np.where(count > 0, mean, 0.0))
 
 
-def _direct(engine: Engine, scene: Scene, bounds, pos, nrm, stats: Stats, sky_set):
+def _direct(engine: Engine, scene: Scene, bounds, pos, nrm, stats: Stats, sky_set,
+            held: dict | None = None):
     """Direct irradiance (M, 3) of every lamp, the World and the emitters at the receivers,
-    or None when there is none."""
-    e_dir = None
+    or None when there is none; with ``held`` (LPVResult.per_light), (that, the same sum with
+    each source weighted as combine weighs its grids, 0 for one without grids, or None)."""
+    e_dir = e_gi = None
+    g = float(scene.settings.intensity)
     for light in scene.lights:
         if light.power <= 0:
             continue
@@ -187,10 +190,51 @@ def _direct(engine: Engine, scene: Scene, bounds, pos, nrm, stats: Stats, sky_se
                                    stats)
         e = direct.irradiance(light, pos, nrm, shadow)
         e_dir = e if e_dir is None else e_dir + e  # the first light: no zeros added
-    e_src = sources.direct(engine, scene, bounds, pos, nrm, stats, sky_set=sky_set)
+        if held is not None and held.get(light.name) is not None:
+            part = e * (light_weight(light)[:, 0] * g)
+            e_gi = part if e_gi is None else e_gi + part
+    weights = None if held is None else sources.gi_weights(scene, held)
+    e_src = sources.direct(engine, scene, bounds, pos, nrm, stats, sky_set=sky_set,
+                           weights=weights)
+    if held is not None:
+        e_src, src_gi = e_src
+        if src_gi is not None:
+            e_gi = src_gi if e_gi is None else e_gi + src_gi
     if e_src is not None:
         e_dir = e_src if e_dir is None else e_dir + e_src
-    return e_dir
+    return e_dir if held is None else (e_dir, e_gi)
+
+
+def _contact(scene: Scene, lpv: LPVResult, projection, mask, pos, nrm, refl, e_gi,
+             stats: Stats):
+    """Contact irradiance (M, 3) at the covered pixels (render/contact.py), None when no
+    pixel bounces light; each pixel's reach is REACH_CELLS cells of the finest cascade
+    holding it (0 outside the LPV)."""
+    if e_gi is None or refl is None:
+        return None
+    h, w = mask.shape
+    flux = np.asarray(refl, np.float64) * e_gi
+    if not (flux > 0).any():
+        return None
+    reach = np.zeros(pos.shape[0])
+    for grid in [g for g, _, _ in lpv.fine] + [lpv.grid]:  # finest first
+        lo, hi = grid.bounds()
+        inside = (reach == 0) & np.all((pos >= lo) & (pos <= hi), axis=1)
+        reach[inside] = contact.REACH_CELLS * grid.cell_size
+    region = np.zeros(pos.shape[0], np.int64)
+    for bit, area in enumerate(a for a in scene.areas or () if a.type == "CLIP"):
+        region |= areas.inside(area, pos).astype(np.int64) << bit
+    area_px, size_px = contact.footprints(scene.camera.view, projection, w, h, pos, nrm)
+
+    def image(values, shape=()):
+        out = np.zeros((h, w) + shape, np.float64)
+        out[mask] = values
+        return out
+
+    with Timer(stats, "contact"):
+        e = contact.gather(image(pos, (3,)), image(nrm, (3,)), mask, image(flux, (3,)),
+                           image(area_px), image(size_px), image(reach), image(region))
+    return e[mask]
 
 
 def _through(near, far, trans: np.ndarray, rows: np.ndarray):
@@ -223,14 +267,21 @@ def _render_samples(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats,
     if scene.triangle_count:
         lo, hi = engine.upload(scene, stats)  # the LPV box: shadow maps cover it, not outliers
         with Timer(stats, "gbuffer"):
-            mask, pos, nrm, albedo, receiver, holdout, trans = engine.raster.gbuffer(
+            # the contact light (our transport's, not KD10's) needs the GI reflectance
+            near = (lpv.values is not None and scene.settings.angular == "dom"
+                    and scene.settings.contact_light)
+            mask, pos, nrm, albedo, receiver, holdout, trans, *refl = engine.raster.gbuffer(
                 scene.camera.view, projection, w, h, footprint, holdout=True, seed=seed,
-                only=only)
+                only=only, reflectance=near)
             color[mask] = albedo
         # a Translucent BSDF's share of a pixel is lit from the far side: its normal turned
         through = np.flatnonzero(trans > 0)
         with Timer(stats, "direct"):
-            e_dir = _direct(engine, scene, (lo, hi), pos, nrm, stats, sky_set)
+            if near:
+                e_dir, e_gi = _direct(engine, scene, (lo, hi), pos, nrm, stats, sky_set,
+                                      lpv.per_light)
+            else:
+                e_dir, e_gi = _direct(engine, scene, (lo, hi), pos, nrm, stats, sky_set), None
             if through.size:
                 back = _direct(engine, scene, (lo, hi), pos[through], -nrm[through], Stats(),
                                sky_set)
@@ -266,6 +317,11 @@ def _render_samples(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats,
                                                                lpv.gaps.get(grid)),
                             -nrm[turned], offset_cells=0.0, angular=scene.settings.angular,
                             visibility=vis)
+                if near:
+                    e_near = _contact(scene, lpv, projection, mask, pos, nrm,
+                                      refl[0] if refl else None, e_gi, stats)
+                    if e_near is not None:  # >= 0 as the lookup's (negative GI weights)
+                        e_ind[recv] = np.maximum(e_ind[recv] + e_near[recv], 0.0)
                 if turned.size:
                     e_ind = _through(e_ind, far, trans, turned)
                 if areas.has_transition(scene.areas):

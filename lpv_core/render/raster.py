@@ -677,7 +677,8 @@ class Rasterizer:
 
     def gbuffer(self, view: np.ndarray, projection: np.ndarray, width: int,
                 height: int, footprint: float = 0.0, holdout: bool = False,
-                seed: tuple[int, int] = (0, 1), only: np.ndarray | None = None) -> tuple:
+                seed: tuple[int, int] = (0, 1), only: np.ndarray | None = None,
+                reflectance: bool = False) -> tuple:
         """The covered pixels of a camera view, as ``render`` gives them at frame.covered
         (the same numbers, pixels in row-major order, rows top-first): (covered (H, W) bool,
         world positions (M, 3) float64, normals (M, 3) float64, albedo (M, 3) float32,
@@ -686,10 +687,13 @@ class Rasterizer:
         not whole frames. ``footprint``: the side of each pixel's cell in pixels over which
         a textured albedo is integrated (textures.footprint_factor; 0: read at the pixel's
         centre); ``seed``: the hashed alpha's (antialias sample, samples); ``only`` (H, W)
-        bool: these pixels alone are taken (covered is False elsewhere)."""
+        bool: these pixels alone are taken (covered is False elsewhere); ``reflectance``: the
+        GI reflectance (M, 3) float32 last (the RSM's: 0 for non-casters, textured as
+        rsm_texels)."""
         if self.corners is None or self._vao is None:
-            pos4, nrm4, alb4 = self.read(view, projection, width, height, False, (0, 1, 2),
-                                         HIDDEN_FROM_CAMERA, seed)
+            targets = (0, 1, 2, 3) if reflectance else (0, 1, 2)
+            pos4, nrm4, alb4, *refl4 = self.read(view, projection, width, height, False,
+                                                 targets, HIDDEN_FROM_CAMERA, seed)
         else:  # textured: the fifth target's barycentrics and triangle give the albedo
             program = self._textured["gbuffer"]
             program["origin"].value = (0.0, 0.0, 0.0)
@@ -707,8 +711,9 @@ class Rasterizer:
         # holdout flags, then the translucency (0-1) of the covered pixels
         held = (w4 > 1.5, np.where(w4 > 1.5, 0.0, w4).astype(np.float32)) if holdout else ()
         if self.corners is None or self._vao is None:
+            refl = (np.ascontiguousarray(refl4[0][covered][:, :3]),) if reflectance else ()
             return (covered, pos, nrm, np.ascontiguousarray(alb[:, :3]), alb[:, 3] > 0.5,
-                    *held)
+                    *held, *refl)
         b = bary4[covered]
         tri = (b[:, 2].astype(np.int64) - 1) * TRIANGLE_SPLIT + b[:, 3].astype(np.int64)
         albedo = self.albedo[tri]
@@ -735,7 +740,13 @@ class Rasterizer:
             has = np.flatnonzero(r >= 0)
             cos = (nrm[has] * to_eye(view, projection, pos[has])).sum(-1)
             albedo[has] *= textures.share_at(table, r[has], cos)
-        return (covered, pos, nrm, albedo, alb[:, 3] > 0.5, *held)
+        refl = ()
+        if reflectance:
+            refl = self.reflectance[tri]
+            if self.surface is not None:
+                refl = refl * self.surface.factor(tri, b[:, :2], gi=True)
+            refl = (np.ascontiguousarray(refl, np.float32),)
+        return (covered, pos, nrm, albedo, alb[:, 3] > 0.5, *held, *refl)
 
     def surroundings(self, point, near: float, far: float, size: int = 32):
         """What ``point`` sees in every direction: the six faces of a cube map of ``size``^2

@@ -157,6 +157,9 @@ class GISettings:
     # Sub-pixel samples per pixel side of a render (deferred.render; Cycles' 1-pixel box
     # filter): 1 = one sample at the centre. Output only: the LPV does not depend on it.
     antialias: int = 2
+    # The render's contact light (render/contact.py): the bounce from within a cell, gathered
+    # from each sample's pixels. Output only, like antialias; the viewport overlay has none.
+    contact_light: bool = True
 
     def __post_init__(self) -> None:
         if self.angular not in ANGULAR_MODELS:
@@ -193,7 +196,7 @@ SETTING_RANGES = {
     "grid_resolution": (4, None), "cascades": (1, 8), "cascades_auto": None,
     "iterations": (0, 1000), "angular": ANGULAR_MODELS, "rsm_resolution": (16, 2048),
     "occlusion": None, "bounces": (1, 8), "backend": BACKENDS, "intensity": (0.0, 100.0),
-    "shadow_resolution": (16, 4096), "antialias": (1, 8),
+    "shadow_resolution": (16, 4096), "antialias": (1, 8), "contact_light": None,
 }
 
 

@@ -1,0 +1,102 @@
+"""Contact light: the first bounce a receiver gets from surfaces nearer than one cell, which
+the grid cannot resolve, gathered from the camera's G-buffer (screen space).
+
+The grid holds light per cell, so an emitting surface closer to a receiver than about a cell
+reads as if it stood a cell away: beside a sunlit box the grid is within 6 % of the analytic
+bounce from one cell out but reads one value inside that cell (docs/algorithm.md). The gather
+adds what that leaves out. Over pixels j within the reach rho (REACH_CELLS cells of the
+receiver's finest cascade) of receiver i, each a patch of area A_j and GI radiosity B_j
+(direct irradiance weighted as the grids are x GI reflectance):
+
+    E_i += sum_j B_j cos_i cos_j max(0, A_j / (pi r^2 + A_j) - A_j / (pi rho^2))
+
+the patch's disk form factor (Bunnell, GPU Gems 2 ch. 14: finite where two surfaces meet, so a
+room's corners take no spike) less the share the grid resolves, the patch as if at rho. The
+term is 0 from rho out, so light the grid carries is not counted twice there. Only what the
+camera sees emits (a hidden face's contact light is missing) and nothing between i and j
+shadows (within a cell the cosines cut what is behind either surface). A window of up to
+(2 TAP_RADIUS + 1)^2 taps on a circle, the stride growing with rho in pixels, bounds the cost;
+a tap stands for stride^2 pixels.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..kernels import contact as _compiled
+from ..runtime import jit
+
+REACH_CELLS = 1.0  # the grid resolves light from about one cell out (docs/algorithm.md)
+TAP_RADIUS = 5  # taps per side: a disk of 2 T + 1 taps across, 80 taps with the centre out
+GRAZING = 1e-3  # |cos| floor of a pixel's area at grazing view (the disk form factor caps it)
+
+
+def footprints(view: np.ndarray, projection: np.ndarray, width: int, height: int,
+               positions: np.ndarray, normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(area (M,) m^2 of the surface each pixel sees, size (M,) m of a pixel across the view
+    ray at its depth) for points ``positions`` seen through the camera: the pixel's
+    cross-section at its view depth (orthographic: at any depth) x cos of the ray to the view
+    axis, over |cos| of the ray to the surface."""
+    view = np.asarray(view, np.float64)
+    proj = np.asarray(projection, np.float64)
+    p = np.asarray(positions, np.float64)
+    sx, sy = 2.0 / (width * abs(proj[0, 0])), 2.0 / (height * abs(proj[1, 1]))
+    if abs(float(proj[3, 3])) > 0.5:  # orthographic
+        cross = np.full(p.shape[0], sx * sy)
+    else:
+        depth = -(p @ view[2, :3] + view[2, 3])
+        cross = sx * sy * depth * depth
+    from .raster import to_eye
+
+    eye = to_eye(view, proj, p)
+    axis = np.linalg.inv(view)[:3, 2]  # the camera's +Z, back along its view
+    cos_axis = np.abs(eye @ axis)
+    cos_surface = np.maximum(np.abs((eye * np.asarray(normals, np.float64)).sum(-1)), GRAZING)
+    return cross * cos_axis / cos_surface, np.sqrt(cross * cos_axis)
+
+
+def gather(positions: np.ndarray, normals: np.ndarray, covered: np.ndarray,
+           radiosity: np.ndarray, area: np.ndarray, size: np.ndarray, reach: np.ndarray,
+           region: np.ndarray) -> np.ndarray:
+    """Contact irradiance (H, W, 3) W/m^2 at every covered pixel from the covered pixels within
+    its ``reach`` (module docstring). Images (H, W, ...): world positions and normals (3),
+    ``covered`` bool, ``radiosity`` B (3) W/m^2, pixel ``area`` m^2 and ``size`` m
+    (footprints), ``reach`` rho m (0: none), ``region`` int (pixels in different ones, on
+    different sides of a clip area, do not light each other)."""
+    h, w = covered.shape
+    out = np.zeros((h, w, 3), np.float64)
+    if not covered.any():
+        return out
+    if jit.enabled():
+        return _compiled.gather(positions, normals, covered, radiosity, area, size, reach,
+                                region, TAP_RADIUS)
+    pos = np.asarray(positions, np.float64)
+    nrm = np.asarray(normals, np.float64)
+    flux = np.asarray(radiosity, np.float64) * np.asarray(area, np.float64)[..., None]
+    rho = np.where(covered, np.asarray(reach, np.float64), 0.0)
+    px = np.divide(rho, size, out=np.zeros((h, w)), where=size > 0)
+    stride = np.maximum(1, np.ceil(px / TAP_RADIUS)).astype(np.int64)
+    live = covered & (px >= 1.0)  # nearer neighbours than a pixel: none within reach
+    ys, xs = np.mgrid[0:h, 0:w]
+    inv_far = np.divide(1.0, np.pi * rho * rho, out=np.zeros((h, w)), where=rho > 0)
+    t = TAP_RADIUS
+    for dy in range(-t, t + 1):
+        for dx in range(-t, t + 1):
+            if (dx == 0 and dy == 0) or dx * dx + dy * dy > t * t:
+                continue
+            y, x = ys + dy * stride, xs + dx * stride
+            ok = live & (y >= 0) & (y < h) & (x >= 0) & (x < w)
+            y, x = np.where(ok, y, 0), np.where(ok, x, 0)
+            ok &= covered[y, x] & (region[y, x] == region)
+            v = pos[y, x] - pos
+            r2 = (v * v).sum(-1)
+            ok &= (r2 < rho * rho) & (r2 > 0)
+            r2 = np.where(ok, r2, 1.0)
+            ci = (nrm * v).sum(-1)
+            cj = -(nrm[y, x] * v).sum(-1)
+            ok &= (ci > 0) & (cj > 0)
+            a = (stride * stride) * area[y, x]
+            k = ci * cj / r2 * np.maximum(0.0, 1.0 / (np.pi * r2 + a) - inv_far)
+            k = np.where(ok, k * (stride * stride), 0.0)
+            out += flux[y, x] * k[..., None]
+    return out
