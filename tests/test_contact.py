@@ -13,6 +13,7 @@ from lpv_core import engine
 from lpv_core.render import contact, deferred
 from lpv_core.runtime import jit
 from lpv_core.scene import (
+    Area,
     Camera,
     GISettings,
     Light,
@@ -65,7 +66,7 @@ def test_a_patch_gives_its_disk_form_factor_less_the_share_the_grid_resolves(com
 
 
 def _box_scene(resolution: int, shift: float, gi: float = 1.0, angular: str = "dom",
-               contact_light: bool = True):
+               contact_light: bool = True, clip: bool = False):
     ground = quad([-6, -6, 0], [6, -6, 0], [6, 6, 0], [-6, 6, 0])
     move = np.array([0.0, shift, 0.0])
     box = box_triangles([-0.5, -0.5, 0.0], [0.5, 0.5, 3.0]) + move
@@ -77,8 +78,11 @@ def _box_scene(resolution: int, shift: float, gi: float = 1.0, angular: str = "d
     cam = Camera(look_at_matrix(np.array([1.2, -3.0, 1.6]) + move,
                                 np.array([0.0, -0.6, 0.3]) + move),
                  perspective_matrix(0.9, 1.0, 0.05, 200.0), (96, 96))
+    # a clip area just around the box: its faces inside, the ground beside them outside
+    around = np.diag([0.51, 0.51, 1.51, 1.0])
+    around[:3, 3] = move + (0.0, 0.0, 1.5)
     return make_scene(np.concatenate([ground, box]), materials=[Material("grey")],
-                      lights=[sun], camera=cam,
+                      lights=[sun], camera=cam, areas=[Area("Clip", "CLIP", around)] if clip else [],
                       settings=GISettings(antialias=1, bounces=1, grid_resolution=resolution,
                                           angular=angular, contact_light=contact_light))
 
@@ -178,3 +182,16 @@ def test_compiled_gather_is_the_numpy_one_on_a_real_gbuffer():
         want = contact.gather(*args)
     assert want.max() > 0
     np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-300)
+
+
+def test_a_clip_area_between_a_face_and_the_ground_cuts_their_contact_light():
+    """With a clip area around the box, its lit face and the ground beside it are on different
+    sides: the ground there reads the grid's light alone, exactly."""
+    on, off = (_ground_beside_the_face(_box_scene(16, PLACEMENTS[1], clip=True,
+                                                  contact_light=c), PLACEMENTS[1])
+               for c in (True, False))
+    near = (on[1] > 0.02) & (on[1] < on[3])  # outside the box's 1 cm margin, within a cell
+    assert near.sum() > 10 and off[2][near].max() > 0
+    np.testing.assert_array_equal(on[2][near], off[2][near])
+    unclipped = _ground_beside_the_face(_box_scene(16, PLACEMENTS[1]), PLACEMENTS[1])
+    assert (unclipped[2][near] > on[2][near] * 1.05).mean() > 0.5  # the term, without the clip

@@ -214,17 +214,8 @@ def _contact(scene: Scene, lpv: LPVResult, projection, mask, pos, nrm, refl, e_g
         return None
     h, w = mask.shape
     flux = np.asarray(refl, np.float64) * e_gi
-    if not (flux > 0).any():
+    if not flux.any():
         return None
-    reach = np.zeros(pos.shape[0])
-    for grid in [g for g, _, _ in lpv.fine] + [lpv.grid]:  # finest first
-        lo, hi = grid.bounds()
-        inside = (reach == 0) & np.all((pos >= lo) & (pos <= hi), axis=1)
-        reach[inside] = contact.REACH_CELLS * grid.cell_size
-    region = np.zeros(pos.shape[0], np.int64)
-    for bit, area in enumerate(a for a in scene.areas or () if a.type == "CLIP"):
-        region |= areas.inside(area, pos).astype(np.int64) << bit
-    area_px, size_px = contact.footprints(scene.camera.view, projection, w, h, pos, nrm)
 
     def image(values, shape=()):
         out = np.zeros((h, w) + shape, np.float64)
@@ -232,6 +223,16 @@ def _contact(scene: Scene, lpv: LPVResult, projection, mask, pos, nrm, refl, e_g
         return out
 
     with Timer(stats, "contact"):
+        reach = np.zeros(pos.shape[0])
+        for grid in [g for g, _, _ in lpv.fine] + [lpv.grid]:  # finest first
+            lo, hi = grid.bounds()
+            inside = (reach == 0) & np.all((pos >= lo) & (pos <= hi), axis=1)
+            reach[inside] = contact.REACH_CELLS * grid.cell_size
+        clips = [areas.inside(a, pos) for a in scene.areas or () if a.type == "CLIP"]
+        region = np.zeros(pos.shape[0], np.int64)  # one id per set of clip areas holding it
+        if clips:
+            region = np.unique(np.array(clips).T, axis=0, return_inverse=True)[1].ravel()
+        area_px, size_px = contact.footprints(scene.camera.view, projection, w, h, pos, nrm)
         e = contact.gather(image(pos, (3,)), image(nrm, (3,)), mask, image(flux, (3,)),
                            image(area_px), image(size_px), image(reach), image(region))
     return e[mask]
