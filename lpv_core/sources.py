@@ -168,19 +168,21 @@ def direct(engine, scene, bounds, positions, normals, stats, material: int | Non
     sm = maps(engine, scene, bounds, stats, k, sky_set)
     key = _world_key(k, sky_set)
     e = e_gi = None
-    parts = []
-    if world and key in sm.world:
-        parts.append((f"World '{scene.world.name}'",
-                      sky.irradiance(*sm.world[key][1:], positions, normals, pcf=not gi)))
-    for c, shadow in (sm.clusters[1] if sm.clusters else []):
-        if material is None or c.material == material:
-            parts.append((f"emission '{scene.materials[c.material].name}'",
-                          emitters.irradiance(c, shadow, positions, normals)))
-    for name, part in parts:
+
+    def add(name: str, part: np.ndarray) -> None:  # summed as it comes: two arrays held
+        nonlocal e, e_gi
         e = part if e is None else e + part
         w = (weights or {}).get(name, 0.0)
-        if weights is not None and w:
+        if w:
             e_gi = part * w if e_gi is None else e_gi + part * w
+
+    if world and key in sm.world:
+        add(f"World '{scene.world.name}'",
+            sky.irradiance(*sm.world[key][1:], positions, normals, pcf=not gi))
+    for c, shadow in (sm.clusters[1] if sm.clusters else []):
+        if material is None or c.material == material:
+            add(f"emission '{scene.materials[c.material].name}'",
+                emitters.irradiance(c, shadow, positions, normals))
     return e if weights is None else (e, e_gi)
 
 
