@@ -2,9 +2,9 @@
 the grid cannot resolve, gathered from the camera's G-buffer (screen space).
 
 The grid holds light per cell, so an emitting surface closer to a receiver than about a cell
-reads as if it stood a cell away: beside a sunlit box the grid is within 6 % of the analytic
-bounce from one cell out but reads one value inside that cell (docs/algorithm.md). The gather
-adds what that leaves out. Over pixels j within the reach rho (REACH_CELLS cells of the
+reads as if it stood a cell away: within half a cell of a sunlit box's face the grid reads
+0.63-1.03 of the exact bounce (by where the face falls in its cell), and close to it from
+about a cell out (docs/algorithm.md, "Contact light"). The gather adds what that leaves out. Over pixels j within the reach rho (REACH_CELLS cells of the
 receiver's finest cascade) of receiver i, each a patch of area A_j and GI radiosity B_j
 (direct irradiance weighted as the grids are x GI reflectance):
 
@@ -25,6 +25,7 @@ import numpy as np
 
 from ..kernels import contact as _compiled
 from ..runtime import jit
+from .raster import to_eye
 
 REACH_CELLS = 1.0  # the grid resolves light from about one cell out (docs/algorithm.md)
 TAP_RADIUS = 5  # taps per side: a disk of 2 T + 1 taps across, 80 taps with the centre out
@@ -46,8 +47,6 @@ def footprints(view: np.ndarray, projection: np.ndarray, width: int, height: int
     else:
         depth = -(p @ view[2, :3] + view[2, 3])
         cross = sx * sy * depth * depth
-    from .raster import to_eye
-
     eye = to_eye(view, proj, p)
     axis = np.linalg.inv(view)[:3, 2]  # the camera's +Z, back along its view
     cos_axis = np.abs(eye @ axis)
