@@ -37,6 +37,11 @@ def _digest(*arrays) -> str:
     return h.hexdigest()
 
 
+def source_name(kind: str, what) -> str:
+    """The name a source's Source, grids, GI weight and stats go by: "World 'name'" etc."""
+    return f"{kind} '{what.name}'"
+
+
 def gi_sources(scene, refl: str, stats) -> list[Source]:
     """The World and emissive materials that contribute GI; the rest in the stats with why."""
     out = []
@@ -50,13 +55,13 @@ def gi_sources(scene, refl: str, stats) -> list[Source]:
         stats.skip("sources", "World", why)
     else:
         key = ("world", world.digest or _digest(world.radiance), sky.DIRECTIONS, refl)
-        out.append(Source(f"World '{world.name}'", "world", float(world.gi_intensity), key))
+        out.append(Source(source_name("World", world), "world", float(world.gi_intensity), key))
     mats = emitters.emissive_materials(scene)
     if not mats:
         stats.skip("sources", "emission", "no material emits")
     for mi in mats:
         m = scene.materials[mi]
-        label = f"emission '{m.name}'"
+        label = source_name("emission", m)
         if m.emission_gi_intensity == 0 or g == 0:
             stats.skip("sources", label, "GI intensity is 0 (direct light only)")
             continue
@@ -115,7 +120,7 @@ def maps(engine, scene, bounds, stats, k: int | None = None,
         counts = {n: sum(1 for m, _, _ in sm.world if m == n) for n, _, _ in sm.world}
         if k == sky.RENDER_DIRECTIONS:  # this render's sets (the first sample asks for its own)
             counts[k] = max(counts[k], sky_set[1])
-        info[f"World '{world.name}'"] = (
+        info[source_name("World", world)] = (
             f"{' and '.join(f'{c} x {n}' if c > 1 else str(n) for n, c in sorted(counts.items()))}"
             " directions (GI, pixels: a set per antialias sample), radiance averaged over each "
             f"one's cell; sky visibility from {sky.SHADOW_RESOLUTION}^2 orthographic shadow "
@@ -177,11 +182,11 @@ def direct(engine, scene, bounds, positions, normals, stats, material: int | Non
             e_gi = part * w if e_gi is None else e_gi + part * w
 
     if world and key in sm.world:
-        add(f"World '{scene.world.name}'",
+        add(source_name("World", scene.world),
             sky.irradiance(*sm.world[key][1:], positions, normals, pcf=not gi))
     for c, shadow in (sm.clusters[1] if sm.clusters else []):
         if material is None or c.material == material:
-            add(f"emission '{scene.materials[c.material].name}'",
+            add(source_name("emission", scene.materials[c.material]),
                 emitters.irradiance(c, shadow, positions, normals))
     return e if weights is None else (e, e_gi)
 
@@ -189,15 +194,12 @@ def direct(engine, scene, bounds, positions, normals, stats, material: int | Non
 def gi_weights(scene, held) -> dict:
     """Source name -> the weight combine gives its grids (GI intensity x global intensity) for
     the World and emissive materials whose grids ``held`` (LPVResult.per_light) holds."""
+    world = [] if scene.world is None else [("World", scene.world, scene.world.gi_intensity)]
+    mats = [scene.materials[mi] for mi in emitters.emissive_materials(scene)]
+    weights = ((source_name(kind, what), w) for kind, what, w in
+               world + [("emission", m, m.emission_gi_intensity) for m in mats])
     g = float(scene.settings.intensity)
-    out = {}
-    if scene.world is not None and held.get(f"World '{scene.world.name}'") is not None:
-        out[f"World '{scene.world.name}'"] = float(scene.world.gi_intensity) * g
-    for mi in emitters.emissive_materials(scene):
-        m = scene.materials[mi]
-        if held.get(f"emission '{m.name}'") is not None:
-            out[f"emission '{m.name}'"] = float(m.emission_gi_intensity) * g
-    return out
+    return {name: float(w) * g for name, w in weights if held.get(name) is not None}
 
 
 def cascade_surfels(positions: np.ndarray, chain: list):

@@ -18,6 +18,7 @@ from lpv_core.scene import (
     GISettings,
     Light,
     Material,
+    World,
     look_at_matrix,
     make_scene,
     perspective_matrix,
@@ -195,3 +196,18 @@ def test_a_clip_area_between_a_face_and_the_ground_cuts_their_contact_light():
     np.testing.assert_array_equal(on[2][near], off[2][near])
     unclipped = _ground_beside_the_face(_box_scene(16, PLACEMENTS[1]), PLACEMENTS[1])
     assert (unclipped[2][near] > on[2][near] * 1.05).mean() > 0.5  # the term, without the clip
+
+
+def test_world_light_bounces_as_contact_light_weighted_by_the_worlds_gi_intensity():
+    """The box under a uniform World and no lamp: the sky-lit face lights the ground beside it
+    through the contact light too, scaled with the World's GI intensity like its grids."""
+    def run(gi):
+        scene = _box_scene(16, PLACEMENTS[0])
+        scene.lights = []
+        scene.world = World("Sky", np.full((1, 1, 3), 0.5, np.float32), digest="u", gi_intensity=gi)
+        return _ground_beside_the_face(scene, PLACEMENTS[0])
+
+    one, two = run(1.0), run(2.0)
+    near = one[1] < 0.5 * one[3]
+    assert "contact" in one[5].ms and near.sum() > 10 and one[2][near].min() > 0
+    np.testing.assert_allclose(two[2][near], 2.0 * one[2][near], rtol=1e-5)

@@ -33,9 +33,7 @@ def _gather_kernel(pos, nrm, covered, radiosity, area, size, reach, region, t, o
             if not covered[y, x]:
                 continue
             rho = reach[y, x]
-            if size[y, x] <= 0.0:
-                continue
-            px = rho / size[y, x]
+            px = rho / size[y, x] if size[y, x] > 0.0 else 0.0
             if px < 1.0:
                 continue
             st = max(1, int(np.ceil(px / t)))
@@ -61,6 +59,5 @@ def _gather_kernel(pos, nrm, covered, radiosity, area, size, reach, region, t, o
                         continue
                     a = (st * st) * area[yy, xx]
                     k = ci * cj / r2 * max(0.0, 1.0 / (np.pi * r2 + a) - inv_far) * (st * st)
-                    fa = area[yy, xx]
                     for c in range(3):
-                        out[y, x, c] += radiosity[yy, xx, c] * fa * k
+                        out[y, x, c] += radiosity[yy, xx, c] * area[yy, xx] * k

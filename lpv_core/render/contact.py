@@ -4,8 +4,9 @@ the grid cannot resolve, gathered from the camera's G-buffer (screen space).
 The grid holds light per cell, so an emitting surface closer to a receiver than about a cell
 reads as if it stood a cell away: within half a cell of a sunlit box's face the grid reads
 0.63-1.03 of the exact bounce (by where the face falls in its cell), and close to it from
-about a cell out (docs/algorithm.md, "Contact light"). The gather adds what that leaves out. Over pixels j within the reach rho (REACH_CELLS cells of the
-receiver's finest cascade) of receiver i, each a patch of area A_j and GI radiosity B_j
+about a cell out (docs/algorithm.md, "Contact light"). The gather adds what that leaves out.
+Over pixels j within the reach rho (REACH_CELLS cells of the receiver's finest cascade) of
+receiver i, each a patch of area A_j and GI radiosity B_j
 (direct irradiance weighted as the grids are x GI reflectance):
 
     E_i += sum_j B_j cos_i cos_j max(0, A_j / (pi r^2 + A_j) - A_j / (pi rho^2))

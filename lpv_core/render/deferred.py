@@ -14,7 +14,7 @@ import dataclasses
 
 import numpy as np
 
-from .. import areas, lookup, sky, sources
+from .. import areas, cascades, lookup, sky, sources
 from ..engine import Engine, LPVResult, Stats, Timer, light_weight
 from ..scene.model import Camera, Scene
 from . import contact, direct, raster
@@ -223,11 +223,11 @@ def _contact(scene: Scene, lpv: LPVResult, projection, mask, pos, nrm, refl, e_g
         return out
 
     with Timer(stats, "contact"):
-        reach = np.zeros(pos.shape[0])
-        for grid in [g for g, _, _ in lpv.fine] + [lpv.grid]:  # finest first
-            lo, hi = grid.bounds()
-            inside = (reach == 0) & np.all((pos >= lo) & (pos <= hi), axis=1)
-            reach[inside] = contact.REACH_CELLS * grid.cell_size
+        chain = [g for g, _, _ in lpv.fine] + [lpv.grid]  # finest first
+        cells = np.array([g.cell_size for g in chain])
+        reach = contact.REACH_CELLS * cells[cascades.assign(chain, pos, margin_cells=0.0)]
+        lo, hi = lpv.grid.bounds()
+        reach[~np.all((pos >= lo) & (pos <= hi), axis=1)] = 0.0  # outside the LPV: none
         clips = [areas.inside(a, pos) for a in scene.areas or () if a.type == "CLIP"]
         region = np.zeros(pos.shape[0], np.int64)  # one id per set of clip areas holding it
         if clips:
