@@ -3,12 +3,15 @@
 The coarsest cascade is fitted to the scene (full coverage). Each finer one halves the cell
 size and is centred in front of the camera (pushed a quarter of its width along the view
 direction, as KD10 pushes cascades towards what the camera sees), clamped inside its parent and
-snapped to whole cells of its own size on the coarsest grid's lattice: placement depends only on
-the scene and on which cell the camera is in, never on where the scene sits in the world.
+snapped to whole cells of its parent (each of those lies wholly inside it or outside):
+placement depends only on the scene and on which cell the camera is in, never on where the
+scene sits in the world.
 
 Each VPL goes to the finest cascade that holds it with a cell to spare, so no light is counted
 twice; light leaving a cascade is handed to the next coarser one (KD10's inner-to-outer
-propagation), and a lookup adds what every cascade holding the point says.
+propagation). So a coarser cascade's cells inside a finer one hold only their own VPLs' light:
+a receiver reads the finest cascade holding it, made whole (``whole``: the finer cascades' light
+summed into its cells inside them), and adds the coarser ones as they are (``reads``).
 """
 
 from __future__ import annotations
@@ -207,7 +210,8 @@ def place(lo, hi, resolution: int, count: int, camera=None, focus=None) -> list[
             if len(near):
                 centre = np.median(near, axis=0)
         origin = centre - 0.5 * side
-        origin = anchor + np.round((origin - anchor) / cell) * cell
+        # on its parent's cells, so each of those lies wholly inside it or outside (whole)
+        origin = anchor + np.round((origin - anchor) / parent.cell_size) * parent.cell_size
         p_lo = parent.origin_array
         p_hi = p_lo + parent.cell_size * parent.resolution - side
         origin = np.clip(origin, p_lo, p_hi)  # parent bounds lie on this lattice: still snapped
@@ -228,6 +232,81 @@ def assign(chain: list[Grid], positions: np.ndarray, margin_cells: float = 1.0) 
         level[inside] = i
         free &= ~inside
     return level
+
+
+def _restricted(finer: Grid, values: np.ndarray, coarser: Grid) -> tuple[tuple, np.ndarray]:
+    """(index slices into ``coarser``, the light of ``values`` in those of its cells that lie
+    wholly inside ``finer``). Intensity scales with a cell's cross-section, so a cell of twice
+    the side holds its 8 children's sum / 2 (a uniform field reads the same in both)."""
+    k = (finer.origin_array - coarser.origin_array) / coarser.cell_size
+    first = np.maximum(np.ceil(k - 1e-6).astype(int), 0)
+    end = np.minimum(np.floor(k + finer.resolution * finer.cell_size / coarser.cell_size
+                              + 1e-6).astype(int), coarser.resolution)
+    start = np.rint((first - k) * 2).astype(int)  # the first child, in finer cells
+    n = np.maximum(end - first, 0)
+    block = values[start[0]:start[0] + 2 * n[0], start[1]:start[1] + 2 * n[1],
+                   start[2]:start[2] + 2 * n[2]]
+    block = block.reshape(n[0], 2, n[1], 2, n[2], 2, *values.shape[3:]).sum(axis=(1, 3, 5))
+    return tuple(slice(f, f + m) for f, m in zip(first, n)), 0.5 * block
+
+
+def whole(chain: list[Grid], levels: list[np.ndarray]) -> list[np.ndarray]:
+    """Each coarser cascade's grid with the light of every finer one added in its cells inside
+    them (finest first; the finest is its own grid): what a receiver outside the finer
+    cascades reads, whose lookup reaches into them. Those cells held only their own VPLs'
+    light, the finer cascades' being held until it leaves them: a box face just outside the
+    finest cascade read 0.55 of its light."""
+    out = [levels[0]]
+    for c in range(1, len(chain)):
+        cells, light = _restricted(chain[c - 1], np.asarray(out[-1], np.float64), chain[c])
+        t = np.array(levels[c], np.float32)
+        t[cells] += light.astype(np.float32)
+        out.append(t)
+    return out
+
+
+@dataclass(frozen=True)
+class Read:
+    """One lookup of a cascade's grid, by the receivers inside ``inside`` (None: all) and not
+    inside ``outside`` (None: none)."""
+
+    grid: Grid
+    values: np.ndarray
+    visibility: np.ndarray | None
+    inside: Grid | None
+    outside: Grid | None
+
+    def takes(self, positions: np.ndarray) -> np.ndarray:
+        """(N,) bool: the receivers at ``positions`` that make this read."""
+        p = np.asarray(positions, np.float64)
+        keep = np.ones(p.shape[0], bool)
+        for box, want in ((self.inside, True), (self.outside, False)):
+            if box is not None:
+                lo, hi = box.bounds()
+                keep &= np.all((p >= lo) & (p < hi), axis=1) == want
+        return keep
+
+
+def reads(result) -> list[Read]:
+    """The lookups that give a receiver its light (finest first) from an LPV result (``grid``,
+    ``values``, ``visibility``, ``fine``, ``whole``: engine.LPVResult or the viewport's copy):
+    the finest cascade holding it made whole (``whole``), then every coarser one's own grid."""
+    if result.grid is None or result.values is None:
+        return []
+    fine = list(result.fine or [])
+    chain = [g for g, _, _ in fine] + [result.grid]
+    levels = [v for _, v, _ in fine] + [result.values]
+    visibilities = [v for _, _, v in fine] + [result.visibility]
+    wholes = levels[:1] + list(result.whole or [])
+    if len(wholes) != len(chain):  # a result without them: each grid as it is
+        wholes = levels
+    out = []
+    for c, g in enumerate(chain):
+        if c:  # receivers inside the finer cascade: this cascade's own light
+            out.append(Read(g, levels[c], visibilities[c], chain[c - 1], None))
+        out.append(Read(g, wholes[c], visibilities[c], g if c < len(chain) - 1 else None,
+                        chain[c - 1] if c else None))
+    return out
 
 
 def hand_on(finer: Grid, outflow: np.ndarray, coarser: Grid, target: np.ndarray) -> None:

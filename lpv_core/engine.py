@@ -108,11 +108,15 @@ class LPVResult:
     # (6, R, R, R) propagation visibility used (occlusion x clip areas), None if all clear
     visibility: np.ndarray | None = None
     # Finer cascades inside ``grid`` (finest first): (Grid, combined values, visibility);
-    # lookups add them.
+    # lookups read them as cascades.reads says.
     fine: list = field(default_factory=list)
     # Grid -> geometry_volume.cell_gaps of its occluders (or None): where lookups must not
     # sample (lookup.gap_corrected)
     gaps: dict = field(default_factory=dict)
+    # Per cascade coarser than the finest (finest first): its values with the finer cascades'
+    # light added in its cells inside them (cascades.whole)
+    whole: list = field(default_factory=list)
+
 
 
 class Engine:
@@ -575,13 +579,14 @@ class Engine:
         with Timer(stats, "combine"):
             levels = [combine(g, {n: v[c] for n, v in per_light.items()}, active,
                               intensity) for c, g in enumerate(chain)]
+            whole = cascades.whole(chain, levels)[1:]
         stats.info["vpls"] = vpl_count
         stats.info["iterations"] = iterations
         stats.ms["lpv_update"] = (time.perf_counter() - t0) * 1000.0
         outer = {n: v[-1] for n, v in per_light.items()}
         return LPVResult(chain[-1], levels[-1], outer, stats, vpl_sample, visibilities[-1],
                          [(g, levels[c], visibilities[c]) for c, g in enumerate(chain[:-1])],
-                         gaps)
+                         gaps, whole)
 
     def _reprojected(self, chain, base, active, stats: Stats):
         """(per-light grids, VPL samples) shifted by whole cells to ``chain`` when the last
@@ -611,14 +616,15 @@ class Engine:
 
     def _steady(self, chain: list) -> list:
         """The chain with each finer cascade left where it was last update if it would move by
-        at most one of its cells (kept inside its parent): hysteresis, so that a camera
+        at most one of its parent's cells (kept inside its parent): hysteresis, so that a camera
         moving back and forth over a snapping boundary does not make the cascades flicker
         (and a camera move within a cell does no LPV work)."""
         last, self._last_chain = self._last_chain, None
         if last is not None and len(last) == len(chain) and last[-1] == chain[-1]:
             steady = [chain[-1]]
             for new, old in zip(chain[-2::-1], last[-2::-1]):
-                moved = np.max(np.abs(new.origin_array - old.origin_array)) / new.cell_size
+                # one cell of its parent: placement snaps to those (cascades.place)
+                moved = np.max(np.abs(new.origin_array - old.origin_array)) / steady[-1].cell_size
                 pick = old if (new.cell_size == old.cell_size and moved <= 1.0 + 1e-9) else new
                 # Nested in the (possibly kept) parent; parent bounds lie on this lattice.
                 p_lo = steady[-1].origin_array

@@ -269,6 +269,8 @@ def save_result(path: str, result, scene: Scene) -> None:
             out[f"fine_{i}_visibility"] = np.asarray(vis, np.float32)
         if gaps.get(grid) is not None:
             out[f"fine_{i}_gaps"] = np.asarray(gaps[grid], np.float32)
+    for i, values in enumerate(getattr(result, "whole", None) or []):
+        out[f"whole_{i}"] = np.asarray(values, np.float32)  # cascades.whole, past the finest
     tmp = path + ".tmp.npz"
     np.savez(tmp, **out)
     os.replace(tmp, path)

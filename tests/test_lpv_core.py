@@ -403,8 +403,9 @@ def test_cascades_nest_snap_and_hand_light_outwards():
         ilo, ihi = inner.bounds()
         olo, ohi = outer.bounds()
         assert np.all(ilo >= olo - 1e-9) and np.all(ihi <= ohi + 1e-9)
-        # snapped: the inner origin sits on the outer grid's lattice of inner cells
-        k = (inner.origin_array - chain[-1].origin_array) / inner.cell_size
+        # snapped: the inner origin sits on its parent's cells (each of them wholly inside
+        # the inner cascade or outside it, cascades.whole)
+        k = (inner.origin_array - outer.origin_array) / outer.cell_size
         np.testing.assert_allclose(k, np.round(k), atol=1e-6)
     # Moving the camera by less than the finest cell keeps every cascade in place.
     shifted = sc.camera.view.copy()

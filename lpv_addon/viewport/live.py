@@ -64,6 +64,7 @@ class LiveResult:
     # Grid (``grid`` or one of ``fine``) -> geometry_volume.cell_gaps (6, R, R, R) or None:
     # where lookups move their sample point (lookup.gap_corrected)
     gaps: dict = field(default_factory=dict)
+    whole: list = field(default_factory=list)  # cascades.whole past the finest (finest first)
     stats: dict = field(default_factory=dict)
     arrived: float = 0.0  # time.monotonic() when it arrived (fade-in start)
     recombine_key: str = ""
@@ -244,14 +245,14 @@ def _recombine(scene, key: str, reasons: list[str], t0: float) -> LiveResult | N
 
 
 def _new_result(grid, values, per_light, scene, stats, key, vpl=(None, None), visibility=None,
-                fine=None, gaps=None) -> LiveResult:
+                fine=None, gaps=None, whole=None) -> LiveResult:
     STATE.serial += 1
     return LiveResult(
         serial=STATE.serial, grid=grid, values=values, per_light=per_light,
         lights=list(scene.lights), settings=scene.settings, areas=list(scene.areas),
         geometry=_geometry(scene), vpl_position=vpl[0], vpl_flux=vpl[1], visibility=visibility,
         stats=stats, arrived=time.monotonic(), recombine_key=key,
-        fine=list(fine or []), gaps=dict(gaps or {}),
+        fine=list(fine or []), gaps=dict(gaps or {}), whole=list(whole or []),
     )
 
 
@@ -293,9 +294,10 @@ def _read_reply(reply: dict, scene, key: str, reasons: list[str], t_sent: float,
         fine.append((g, data[f"fine_{i}_values"], vis))
         if f"fine_{i}_gaps" in data.files:
             gaps[g] = data[f"fine_{i}_gaps"]
+    whole = [data[f"whole_{i}"] for i in range(len(fine)) if f"whole_{i}" in data.files]
     return _new_result(grid, values, per_light, scene, stats, key,
                        vpl=(opt["vpl_position"], opt["vpl_flux"]), visibility=opt["visibility"],
-                       fine=fine, gaps=gaps)
+                       fine=fine, gaps=gaps, whole=whole)
 
 
 def refresh(scene: bpy.types.Scene, depsgraph=None, wait: bool = False,

@@ -274,7 +274,10 @@ void main() {
         albedo *= view_share(int(v_share + 0.5), dot(n, normalize(to_eye)));
     }
     vec3 radiance = e / PI * albedo * v_col.a;
-    FragColor = vec4(radiance * params.y, 1.0);
+    /* cascades.Read.takes: the receivers inside keep and not inside skip read this grid */
+    bool takes = all(greaterThanEqual(p, keep_lo.xyz)) && all(lessThan(p, keep_hi.xyz))
+                 && !(all(greaterThanEqual(p, skip_lo.xyz)) && all(lessThan(p, skip_hi.xyz)));
+    FragColor = vec4(takes ? radiance * params.y : vec3(0.0), 1.0);
 }
 """
 
@@ -301,6 +304,8 @@ def _lpv_shader():
         info.push_constant("VEC4", "eye")  # eye position, 1 if orthographic
         info.push_constant("VEC4", "view_dir")  # view direction (orthographic views)
         info.push_constant("FLOAT", "nudge")  # deferred.toward_viewer's distance
+        for name in ("keep_lo", "keep_hi", "skip_lo", "skip_hi"):  # cascades.Read's boxes
+            info.push_constant("VEC4", name)
         info.push_constant("FLOAT", "use_gaps")  # 1: move sample points (gap_corrected)
         info.push_constant("VEC4", "tex_mode")  # textured, interpolation, extension codes
         for slot, name in enumerate(SAMPLERS):
@@ -444,20 +449,35 @@ def share_texture(shares):
 
 
 def levels(result) -> list:
-    """(grid, values, visibility) of every cascade of a result, coarsest first."""
-    if result is None or result.grid is None or result.values is None:
+    """The lookups of a result (core.cascades.reads: each cascade's grid and the receivers
+    that read it), coarsest first."""
+    if result is None:
         return []
-    return [(result.grid, result.values, result.visibility)] + list(result.fine or [])
+    return core.cascades.reads(result)[::-1]
+
+
+FAR = 1e30  # a box around everything
+
+
+def _box(grid, inside: bool) -> tuple:
+    """(lo, hi) vec4s of a read's box: ``grid``'s, or everything (``inside``) or nothing."""
+    if grid is not None:
+        lo, hi = grid.bounds()
+        return (*lo, 0.0), (*hi, 0.0)
+    return ((-FAR,) * 3 + (0.0,), (FAR,) * 3 + (0.0,)) if inside else \
+        ((FAR,) * 3 + (0.0,), (-FAR,) * 3 + (0.0,))
 
 
 def _result_resources(result):
     def make():
         out = []
         gaps = getattr(result, "gaps", None) or {}
-        for grid, values, visibility in levels(result):
-            values = core.areas.apply_transition_to_grid(grid, values, result.areas)
+        for read in levels(result):
+            grid, visibility = read.grid, read.visibility
+            values = core.areas.apply_transition_to_grid(grid, read.values, result.areas)
             texs, scale = lpv_textures(grid, values)
             out.append({"grid": grid, "textures": texs, "scale": scale,
+                        "keep": _box(read.inside, True), "skip": _box(read.outside, False),
                         "visibility": visibility_textures(grid, visibility),
                         "gaps": gap_textures(grid, gaps.get(grid))})
         ones = _texture((1, 1, 1), "RGBA16F", np.ones(4, np.float32))
@@ -524,6 +544,10 @@ def _draw_indirect(result, mvp: Matrix, eye4, view_dir4, weight: float,
         shader.uniform_float("eye", eye4)
         shader.uniform_float("view_dir", view_dir4)
         shader.uniform_float("nudge", nudge)
+        for name, corner in zip(("keep_lo", "keep_hi"), level["keep"]):
+            shader.uniform_float(name, corner)
+        for name, corner in zip(("skip_lo", "skip_hi"), level["skip"]):
+            shader.uniform_float(name, corner)
         gaps = level["gaps"]
         shader.uniform_float("use_gaps", 0.0 if gaps is None else 1.0)
         for name, tex in zip(LPV_SAMPLERS, level["textures"]):

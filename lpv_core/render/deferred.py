@@ -299,25 +299,32 @@ def _render_samples(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats,
                 backend = engine.backend(scene.settings)  # the lookup runs where it is fastest
                 finest = min([lpv.grid.cell_size] + [g.cell_size for g, _, _ in lpv.fine])
                 at = toward_viewer(scene.camera, pos, VIEWER_NUDGE_CELLS * finest)
-                levels = [(lpv.grid, lpv.values, lpv.visibility)] + list(lpv.fine)
                 every = bool(recv.all())  # no masked copies of 1M points when all receive
-                at_r, nrm_r = (at, nrm) if every else (at[recv], nrm[recv])
+                rows = slice(None) if every else np.nonzero(recv)[0]
+                at_r, nrm_r = at[rows], nrm[rows]
                 turned = through[recv[through]] if through.size else through
                 far = np.zeros((turned.size, 3))  # the translucent share's, from the far side
-                for grid, values, vis in levels:  # inner cascades add theirs
-                    e = backend.irradiance(
-                        grid, values, lookup.sample_points(grid, at_r, nrm_r, lpv.gaps.get(grid)),
-                        nrm_r, offset_cells=0.0, angular=scene.settings.angular, visibility=vis)
-                    if every:
-                        e_ind += e
-                    else:
-                        e_ind[recv] += e
+
+                def read(r, at_, nrm_):  # the receivers this read is for, and their light
+                    take = r.takes(at_)
+                    if take.all():
+                        take = slice(None)
+                    elif not take.any():
+                        return take, None
+                    pts = lookup.sample_points(r.grid, at_[take], nrm_[take],
+                                               lpv.gaps.get(r.grid))
+                    return take, backend.irradiance(
+                        r.grid, r.values, pts, nrm_[take], offset_cells=0.0,
+                        angular=scene.settings.angular, visibility=r.visibility)
+
+                for r in cascades.reads(lpv):  # the finest cascade holding each, coarser ones added
+                    take, e = read(r, at_r, nrm_r)
+                    if e is not None:
+                        e_ind[take if every else rows[take]] += e
                     if turned.size:
-                        far += backend.irradiance(
-                            grid, values, lookup.sample_points(grid, at[turned], -nrm[turned],
-                                                               lpv.gaps.get(grid)),
-                            -nrm[turned], offset_cells=0.0, angular=scene.settings.angular,
-                            visibility=vis)
+                        take, e = read(r, at[turned], -nrm[turned])
+                        if e is not None:
+                            far[take] += e
                 if near:
                     e_near = _contact(scene, lpv, projection, mask, pos, nrm,
                                       refl[0] if refl else None, e_gi, stats)
