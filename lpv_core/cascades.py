@@ -248,8 +248,8 @@ def _restricted(finer: Grid, values: np.ndarray, coarser: Grid) -> tuple[tuple, 
                    start[2]:start[2] + 2 * n[2]]
     block = block.reshape(n[0], 2, n[1], 2, n[2], 2, -1)
     out = block[:, 0, :, 0, :, 0].copy()  # the 8 children summed one at a time (no temporaries)
-    for k in range(1, 8):
-        out += block[:, k >> 2, :, (k >> 1) & 1, :, k & 1]
+    for child in range(1, 8):
+        out += block[:, child >> 2, :, (child >> 1) & 1, :, child & 1]
     out *= 0.5
     return (tuple(slice(f, f + m) for f, m in zip(first, n)),
             out.reshape(*n, *values.shape[3:]))

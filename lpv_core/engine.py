@@ -118,7 +118,6 @@ class LPVResult:
     whole: list = field(default_factory=list)
 
 
-
 class Engine:
     """Computes LPV GI for core Scenes; owns the GL rasteriser of this process."""
 

@@ -448,7 +448,7 @@ def share_texture(shares):
     return _texture((k, s), "RGBA32F", rgba)
 
 
-def levels(result) -> list:
+def reads(result) -> list:
     """The lookups of a result (core.cascades.reads: each cascade's grid and the receivers
     that read it), coarsest first."""
     if result is None:
@@ -472,7 +472,7 @@ def _result_resources(result):
     def make():
         out = []
         gaps = getattr(result, "gaps", None) or {}
-        for read in levels(result):
+        for read in reads(result):
             grid, visibility = read.grid, read.visibility
             values = core.areas.apply_transition_to_grid(grid, read.values, result.areas)
             texs, scale = lpv_textures(grid, values)
@@ -526,7 +526,7 @@ def _matrix(m) -> Matrix:
 def _draw_indirect(result, mvp: Matrix, eye4, view_dir4, weight: float,
                    first_blend: str) -> None:
     """Every cascade of ``result`` (the first pass with ``first_blend``, the rest added)."""
-    if not levels(result) or weight <= 0:
+    if not reads(result) or weight <= 0:
         return
     res = _result_resources(result)
     shader = _lpv_shader()
