@@ -301,10 +301,14 @@ def reads(result) -> list[Read]:
     fine = list(result.fine or [])
     chain = [g for g, _, _ in fine] + [result.grid]
     levels = [v for _, v, _ in fine] + [result.values]
-    visibilities = [v for _, _, v in fine] + [result.visibility]
     wholes = levels[:1] + list(result.whole or [])
     if len(wholes) != len(chain):  # a result without them: each grid as it is
         wholes = levels
+    return chain_reads(chain, levels, wholes, [v for _, _, v in fine] + [result.visibility])
+
+
+def chain_reads(chain: list[Grid], levels: list, wholes: list, visibilities: list) -> list[Read]:
+    """reads of a chain's grids (finest first), their ``whole`` versions and visibilities."""
     out = []
     for c, g in enumerate(chain):
         if c:  # receivers inside the finer cascade: this cascade's own light

@@ -760,8 +760,8 @@ class Engine:
 
     def _more_bounces(self, scene: Scene, run: _ChainRun, first: list) -> list:
         """Add bounces 2..N [KD10 sec. 6]: every caster surfel reflects the light of the
-        previous bounce (irradiance on each side, read from every cascade, x area x GI
-        reflectance) as new VPLs, injected and propagated like the RSM's. Each bounce carries
+        previous bounce (irradiance on each side, read from the cascades as a receiver reads
+        them, cascades.reads, x area x GI reflectance) as new VPLs, injected and propagated like the RSM's. Each bounce carries
         at most the albedo's share of the last, so the series converges."""
         settings, stats, chain = scene.settings, run.stats, run.chain
         with Timer(stats, "bounces"):
@@ -782,11 +782,15 @@ class Engine:
         for _ in range(settings.bounces - 1):
             with Timer(stats, "bounces"):
                 e = np.zeros((pos2.shape[0], 3))
-                for c, g in enumerate(chain):
-                    e += run.backend.irradiance(
-                        g, previous[c], lookup.sample_points(g, pos2, nrm2, self.gaps(g)), nrm2,
-                        offset_cells=0.0, angular=settings.angular,
-                        visibility=run.visibilities[c])
+                for r in cascades.chain_reads(chain, previous, cascades.whole(chain, previous),
+                                              run.visibilities):
+                    take = r.takes(pos2)
+                    if take.any():
+                        e[take] += run.backend.irradiance(
+                            r.grid, r.values, lookup.sample_points(
+                                r.grid, pos2[take], nrm2[take], self.gaps(r.grid)),
+                            nrm2[take], offset_cells=0.0, angular=settings.angular,
+                            visibility=r.visibility)
                 flux = e * area2 * refl2
                 keep = flux.max(axis=1) > 0
             if not keep.any():

@@ -65,7 +65,7 @@ def shot(mode, clear=(0, 0, 0, 0), **kw):
     return np.array(buf.to_list(), np.float32).reshape(H, W, 4)[::-1]  # top row first
 
 from lpv_core.render import deferred
-from lpv_core import lookup, sh
+from lpv_core import cascades, lookup, sh
 from lpv_core.grid import Grid
 from lpv_core.scene import GISettings
 # the default settings: the product's transport, 9 SH coefficients per colour; the expected
@@ -211,6 +211,12 @@ res["gap_shapes_ok"] = np.array(all(
     for g in cascade_grids))
 res["gap_any"] = np.array(any(cur.gaps[g] is not None and cur.gaps[g].max() > 0
                               for g in cascade_grids))
+# The worker's reply carries each coarser cascade made whole (cascades.whole), as it made it.
+chain = [lv[0] for lv in cur.fine] + [cur.grid]
+made = cascades.whole(chain, [lv[1] for lv in cur.fine] + [cur.values])[1:]
+res["whole_ok"] = np.array(len(cur.whole) == len(cur.fine) == len(made) and all(
+    np.allclose(a, b, rtol=1e-6, atol=0) and not np.array_equal(a, cur.values)
+    for a, b in zip(cur.whole, made)))
 res["cascaded"] = shot("INDIRECT")
 res["expect_cascaded"] = expected()
 scene.lpv.cascades = 1
@@ -362,6 +368,7 @@ def test_only_nine_coefficient_grids_are_drawn(shots):
 
 def test_cascades_add_up_like_the_renderer(shots):
     assert int(shots["levels"]) == 2
+    assert bool(shots["whole_ok"])  # the receivers outside the finer cascade read it whole
     got, expect = shots["cascaded"][..., :3], shots["expect_cascaded"]
     m = _mask(expect)
     rel = np.abs(got[m] - expect[m]) / expect[m]
