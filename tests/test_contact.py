@@ -1,8 +1,11 @@
 """Contact light (lpv_core/render/contact.py): the bounce from surfaces nearer than a cell.
 
-A hand-derived pair of patches; the ground beside the sunlit face of a 1 x 1 x 3 m box against
-the face's exact single bounce (the form factor integrated over the face) at several placements
-of the box in its cells; what it leaves alone; GI weights; the compiled twin."""
+Hand-derived patches (the disk form factor without a footprint, a parallel square's
+catalogued form factor, the part of a patch above the receiver's plane); the footprints'
+half-edges against the rasteriser's steps; the ground beside the sunlit face of a 1 x 1 x 3 m
+box against the face's exact single bounce (the form factor integrated over the face) at
+several placements of the box in its cells; what it leaves alone; GI weights; the compiled
+twin."""
 
 from __future__ import annotations
 
@@ -32,7 +35,8 @@ ALBEDO = 0.8  # Material's default diffuse colour
 
 def _pair(reach=0.25, region=(0, 0)):
     """A 1 x 3 image: a receiver facing +z at the origin, an emitting patch 0.1 m from it
-    (cos 0.6 at the receiver, 0.8 at the patch), an empty pixel."""
+    (cos 0.6 at the receiver, 0.8 at the patch) with no footprint (the disk form factor), an
+    empty pixel."""
     pos = np.zeros((1, 3, 3))
     nrm = np.zeros((1, 3, 3))
     nrm[0, 0] = (0, 0, 1)
@@ -43,27 +47,79 @@ def _pair(reach=0.25, region=(0, 0)):
     area = np.array([[0.001, 0.002, 0.0]])
     size = np.full((1, 3), 0.1)
     return (pos, nrm, covered, radiosity, area, size, np.full((1, 3), reach),
-            np.array([list(region) + [0]]))
+            np.array([list(region) + [0]]), np.zeros((1, 3, 2, 3)))
+
+
+def _gathered(args, compiled):
+    if compiled and not jit.enabled():
+        pytest.skip("numba is not installed or LPV_JIT=0")
+    if compiled:
+        return contact.gather(*args)
+    with jit.disabled():
+        return contact.gather(*args)
 
 
 @pytest.mark.parametrize("compiled", [False, True])
-def test_a_patch_gives_its_disk_form_factor_less_the_share_the_grid_resolves(compiled):
-    if compiled and not jit.enabled():
-        pytest.skip("numba is not installed or LPV_JIT=0")
-    run = contact.gather
-    if not compiled:
-        with jit.disabled():
-            got = run(*_pair())
-            cut = [run(*_pair(reach=0.09)), run(*_pair(region=(0, 1)))]
-    else:
-        got = run(*_pair())
-        cut = [run(*_pair(reach=0.09)), run(*_pair(region=(0, 1)))]
+def test_a_patch_without_a_footprint_gives_its_disk_form_factor_less_the_grids_share(compiled):
+    got = _gathered(_pair(), compiled)
+    cut = [_gathered(_pair(reach=0.09), compiled), _gathered(_pair(region=(0, 1)), compiled)]
     a, r2, rho = 0.002, 0.01, 0.25
     want = 2.0 * 0.6 * 0.8 * (a / (np.pi * r2 + a) - a / (np.pi * rho * rho))  # by hand
     np.testing.assert_allclose(got[0, 0], want, rtol=1e-12)
     assert got[0, 1].max() == 0 and got[0, 2].max() == 0  # no light towards the patch, no pixel
     for c in cut:  # beyond the reach, across a clip area's boundary: nothing
         assert c.max() == 0
+
+
+def _facing(height, half, centre_z=None, reach=0.5):
+    """A 1 x 2 image: a receiver facing +z at the origin and a square patch of half side
+    ``half`` centred ``height`` above it facing down (its footprint's half-edges along x and
+    y), radiosity 1; with ``centre_z``, the patch turned vertical instead (facing -x, 0.05 m
+    away), centred at that height."""
+    pos = np.zeros((1, 2, 3))
+    nrm = np.zeros((1, 2, 3))
+    nrm[0, 0] = (0, 0, 1)
+    edges = np.zeros((1, 2, 2, 3))
+    if centre_z is None:
+        pos[0, 1], nrm[0, 1] = (0, 0, height), (0, 0, -1)
+        edges[0, 1] = [(half, 0, 0), (0, half, 0)]
+    else:
+        pos[0, 1], nrm[0, 1] = (0.05, 0, centre_z), (-1, 0, 0)
+        edges[0, 1] = [(0, half, 0), (0, 0, half)]
+    radiosity = np.zeros((1, 2, 3))
+    radiosity[0, 1] = 1.0
+    area = np.array([[0.0, 4 * half * half]])
+    return (pos, nrm, np.ones((1, 2), bool), radiosity, area, np.full((1, 2), 0.2),
+            np.full((1, 2), reach), np.zeros((1, 2), np.int64), edges)
+
+
+@pytest.mark.parametrize("compiled", [False, True])
+def test_a_patch_gives_its_footprints_exact_form_factor_less_the_grids_share(compiled):
+    """A square of side 2a centred c above a receiver and parallel to it: four times the
+    catalogued corner form factor (Howell C-11), F = (2 / pi) (X / sqrt(1 + X^2))
+    atan(X / sqrt(1 + X^2)), X = a / c, less the grid's share A / (pi rho^2)."""
+    c, a, rho = 0.1, 0.05, 0.5
+    x = a / c
+    corner = x / np.sqrt(1 + x * x) * np.arctan(x / np.sqrt(1 + x * x)) / np.pi  # by hand
+    want = 4 * corner - 4 * a * a / (np.pi * rho * rho)
+    got = _gathered(_facing(c, a, reach=rho), compiled)
+    np.testing.assert_allclose(got[0, 0], want, rtol=1e-12)
+
+
+@pytest.mark.parametrize("compiled", [False, True])
+def test_a_patch_below_the_receivers_plane_counts_only_its_part_above(compiled):
+    """A vertical square straddling the receiver's plane sends only its upper half's light:
+    the same as the upper half alone, less the whole square's grid share (the cosines at its
+    centre, here 0: the receiver lies in its centre's horizontal plane)."""
+    whole = _gathered(_facing(None, 0.04, centre_z=0.0), compiled)[0, 0]
+    half = _facing(None, 0.04, centre_z=0.02)
+    half[8][0, 1] = [(0, 0.04, 0), (0, 0, 0.02)]
+    half[4][0, 1] = 0.08 * 0.04
+    upper = _gathered(half, compiled)[0, 0]
+    rho, cc = 0.5, 0.02 * 0.05 / (0.05**2 + 0.02**2)  # the upper half's centre cosines
+    share = cc * 0.0032 / (np.pi * rho * rho)
+    assert whole.max() > 0
+    np.testing.assert_allclose(whole, upper + share, rtol=1e-9)
 
 
 def _box_scene(resolution: int, shift: float, gi: float = 1.0, angular: str = "dom",
@@ -122,9 +178,9 @@ PLACEMENTS = (0.013, 0.061, 0.131)  # the box's shift (m): where its face falls 
 
 def test_ground_beside_a_sunlit_face_gets_the_faces_bounce_inside_the_first_cell():
     """16^3 (0.21 m cells; the face 1 m wide), 96^2: over three placements the first half
-    cell's mean irradiance / the exact bounce averages 0.9-1.3 (measured 0.91 / 1.06 / 1.10),
-    the next half cell's 0.85-1.2 (0.79 / 0.93 / 1.03); the grid alone reads 0.63 / 0.77 /
-    0.81 and 0.74 / 0.88 / 0.97 there. From 1.5 cells out nothing changes."""
+    cell's mean irradiance / the exact bounce averages 0.9-1.3 (measured 0.95 / 1.16 / 1.13),
+    the next half cell's 0.85-1.2 (0.77 / 0.96 / 0.99); the grid alone reads 0.59 / 0.80 /
+    0.77 and 0.72 / 0.90 / 0.93 there. From 1.5 cells out nothing changes."""
     ratios = {True: [], False: []}
     for shift in PLACEMENTS:
         for on in (True, False):
@@ -159,8 +215,9 @@ def test_contact_light_follows_gi_intensity_is_ours_not_kd10s_and_turns_off():
         assert "contact" not in _ground_beside_the_face(off, PLACEMENTS[0])[5].ms
 
 
-@pytest.mark.skipif(not jit.enabled(), reason="numba is not installed or LPV_JIT=0")
-def test_compiled_gather_is_the_numpy_one_on_a_real_gbuffer():
+def _box_gbuffer():
+    """(w, h, mask, positions, normals, footprints' area and size, patch_edges) of the box
+    scene's camera view."""
     scene = _box_scene(16, PLACEMENTS[1])
     eng = engine.Engine()
     eng.update(scene)
@@ -168,6 +225,13 @@ def test_compiled_gather_is_the_numpy_one_on_a_real_gbuffer():
     w, h = cam.resolution
     mask, pos, nrm, *_ = eng.raster.gbuffer(cam.view, cam.projection, w, h, 1.0)
     area, size = contact.footprints(cam.view, cam.projection, w, h, pos, nrm)
+    edges = contact.patch_edges(cam.view, cam.projection, w, h, pos, nrm)
+    return w, h, mask, pos, nrm, area, size, edges
+
+
+@pytest.mark.skipif(not jit.enabled(), reason="numba is not installed or LPV_JIT=0")
+def test_compiled_gather_is_the_numpy_one_on_a_real_gbuffer():
+    w, h, mask, pos, nrm, area, size, edges = _box_gbuffer()
     rng = np.random.default_rng(3)
 
     def image(v, shape=()):
@@ -177,7 +241,8 @@ def test_compiled_gather_is_the_numpy_one_on_a_real_gbuffer():
 
     args = (image(pos, (3,)), image(nrm, (3,)), mask,
             image(rng.uniform(0, 2, (pos.shape[0], 3)), (3,)), image(area), image(size),
-            image(np.full(pos.shape[0], 0.3)), image(rng.integers(0, 2, pos.shape[0])))
+            image(np.full(pos.shape[0], 0.3)), image(rng.integers(0, 2, pos.shape[0])),
+            image(edges, (2, 3)))
     got = contact.gather(*args)
     with jit.disabled():
         want = contact.gather(*args)
@@ -211,3 +276,34 @@ def test_world_light_bounces_as_contact_light_weighted_by_the_worlds_gi_intensit
     near = one[1] < 0.5 * one[3]
     assert "contact" in one[5].ms and near.sum() > 10 and one[2][near].min() > 0
     np.testing.assert_allclose(two[2][near], 2.0 * one[2][near], rtol=1e-5)
+
+
+def test_a_pixels_footprint_edges_span_the_step_to_its_neighbours_on_the_same_face():
+    """patch_edges on a real G-buffer: the half-edges lie in the surface's plane, span the
+    area footprints gives (4 |du x dv|), and the sum of two neighbours' is the rasteriser's own
+    step between them in x and in y on the same flat face (the ground, the box's faces)."""
+    w, h, mask, pos, nrm, area, _, edges = _box_gbuffer()
+    du, dv = edges[:, 0], edges[:, 1]
+    assert np.all(np.abs((du * nrm).sum(-1)) <= 1e-9 * np.linalg.norm(du, axis=-1) + 1e-12)
+    np.testing.assert_allclose(4 * np.linalg.norm(np.cross(du, dv), axis=-1), area, rtol=2e-3)
+    img = np.zeros((h, w, 3))
+    img[mask] = pos
+    n_img = np.zeros((h, w, 3))
+    n_img[mask] = nrm
+    e_img = np.zeros((h, w, 2, 3))
+    e_img[mask] = edges
+    checked = 0
+    for axis, (oy, ox) in enumerate(((0, 1), (1, 0))):
+        a, b = img[:h - oy, :w - ox], img[oy:, ox:]
+        same = (mask[:h - oy, :w - ox] & mask[oy:, ox:]
+                & np.all(np.abs(n_img[:h - oy, :w - ox] - n_img[oy:, ox:]) < 1e-6, axis=-1)
+                & (np.abs(((b - a) * n_img[:h - oy, :w - ox]).sum(-1)) < 1e-5))
+        step = (b - a)[same]
+        # rows run top-first: a step down the image is -y in NDC
+        # (the half-edges at both ends: the footprint grows with depth)
+        want = (e_img[:h - oy, :w - ox, axis] + e_img[oy:, ox:, axis])[same] * (
+            1 if axis == 0 else -1)
+        err = np.linalg.norm(step - want, axis=-1) / np.linalg.norm(want, axis=-1)
+        assert err.max() < 5e-3, err.max()
+        checked += same.sum()
+    assert checked > 0.8 * 2 * mask.sum()

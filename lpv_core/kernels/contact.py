@@ -6,28 +6,33 @@ from __future__ import annotations
 import numpy as np
 
 from ..runtime import jit, pool
+from .direct import _polygon
 
 
-def gather(positions, normals, covered, radiosity, area, size, reach, region,
-           taps: int) -> np.ndarray:
-    """render.contact.gather by ``_gather_kernel``, ``taps`` its TAP_RADIUS."""
+def gather(positions, normals, covered, radiosity, area, size, reach, region, edges,
+           taps: int, near: float) -> np.ndarray:
+    """render.contact.gather by ``_gather_kernel``, ``taps`` its TAP_RADIUS, ``near`` its
+    NEAR."""
     h, w = covered.shape
     out = np.zeros((h, w, 3), np.float64)
     args = (np.ascontiguousarray(positions, np.float64), np.ascontiguousarray(normals, np.float64),
             np.ascontiguousarray(covered, np.bool_),
             np.ascontiguousarray(radiosity, np.float64), np.ascontiguousarray(area, np.float64),
             np.ascontiguousarray(size, np.float64), np.ascontiguousarray(reach, np.float64),
-            np.ascontiguousarray(region, np.int64))
-    pool.in_parts(lambda sl: _gather_kernel(*args, int(taps), out, sl.start, sl.stop), h,
+            np.ascontiguousarray(region, np.int64), np.ascontiguousarray(edges, np.float64))
+    pool.in_parts(lambda sl: _gather_kernel(*args, int(taps), float(near), out, sl.start,
+                                                  sl.stop), h,
                   smallest=16)
     return out
 
 
 @jit.kernel
-def _gather_kernel(pos, nrm, covered, radiosity, area, size, reach, region, t, out, y0,
-                   y1):  # pragma: no cover - compiled
-    """gather's taps for rows y0..y1-1: the same window, stride, tests and sum in tap order."""
+def _gather_kernel(pos, nrm, covered, radiosity, area, size, reach, region, edges, t, near,
+                   out, y0, y1):  # pragma: no cover - compiled
+    """gather's taps for rows y0..y1-1: the same window, stride, tests, form factors and sum
+    in tap order."""
     h, w = covered.shape
+    poly = np.empty((4, 3))
     for y in range(y0, y1):
         for x in range(w):
             if not covered[y, x]:
@@ -55,9 +60,26 @@ def _gather_kernel(pos, nrm, covered, radiosity, area, size, reach, region, t, o
                         continue
                     ci = nrm[y, x, 0] * v0 + nrm[y, x, 1] * v1 + nrm[y, x, 2] * v2
                     cj = -(nrm[yy, xx, 0] * v0 + nrm[yy, xx, 1] * v1 + nrm[yy, xx, 2] * v2)
-                    if ci <= 0.0 or cj <= 0.0:
+                    if cj <= 0.0:
                         continue
                     a = (st * st) * area[yy, xx]
-                    k = ci * cj / r2 * max(0.0, 1.0 / (np.pi * r2 + a) - inv_far) * (st * st)
+                    cc = max(ci, 0.0) * cj / r2
+                    f = cc * a / (np.pi * r2 + a)  # the disk form factor
+                    lu = lv = 0.0
+                    for k in range(3):
+                        lu += (st * edges[yy, xx, 0, k]) ** 2
+                        lv += (st * edges[yy, xx, 1, k]) ** 2
+                    width = np.sqrt(lu) + np.sqrt(lv)
+                    if width > 0.0 and width <= rho and r2 < (near * width) ** 2:
+                        for k in range(3):
+                            c = pos[yy, xx, k]
+                            du, dv = st * edges[yy, xx, 0, k], st * edges[yy, xx, 1, k]
+                            poly[0, k], poly[1, k] = c - du - dv, c + du - dv
+                            poly[2, k], poly[3, k] = c + du + dv, c - du + dv
+                        f = _polygon(poly, pos[y, x, 0], pos[y, x, 1], pos[y, x, 2],
+                                     nrm[y, x, 0], nrm[y, x, 1], nrm[y, x, 2]) / np.pi
+                    elif ci <= 0.0:
+                        continue
+                    g = max(0.0, f - cc * a * inv_far)
                     for c in range(3):
-                        out[y, x, c] += radiosity[yy, xx, c] * area[yy, xx] * k
+                        out[y, x, c] += radiosity[yy, xx, c] * g

@@ -9,15 +9,20 @@ Over pixels j within the reach rho (REACH_CELLS cells of the receiver's finest c
 receiver i, each a patch of area A_j and GI radiosity B_j
 (direct irradiance weighted as the grids are x GI reflectance):
 
-    E_i += sum_j B_j cos_i cos_j max(0, A_j / (pi r^2 + A_j) - A_j / (pi rho^2))
+    E_i += sum_j B_j max(0, F_ij - cos_i cos_j A_j / (pi rho^2))
 
-the patch's disk form factor (Bunnell, GPU Gems 2 ch. 14: finite where two surfaces meet, so a
-room's corners take no spike) less the share the grid resolves, the patch as if at rho. The
-term is 0 from rho out, so light the grid carries is not counted twice there. Only what the
-camera sees emits (a hidden face's contact light is missing) and nothing between i and j
-shadows (within a cell the cosines cut what is behind either surface). A window of up to
-(2 TAP_RADIUS + 1)^2 taps on a circle, the stride growing with rho in pixels, bounds the cost;
-a tap stands for stride^2 pixels.
+F_ij the patch's exact form factor: the pixel's footprint on its surface's plane (a
+parallelogram, patch_edges) by Lambert's contour integral clipped to the receiver's
+hemisphere (scene.lights.polygon_irradiance / pi), so that the steep near field at a face's
+foot, where the receiver lies almost in the emitter's plane, is integrated over the patch
+instead of sampled at its centre. A patch wider than the reach (a pixel seen at grazing view)
+takes the disk form factor cos_i cos_j A / (pi r^2 + A) (Bunnell, GPU Gems 2 ch. 14), finite
+where two surfaces meet. The subtracted term is the share the grid resolves, the patch as if
+at rho: the sum is 0 from rho out, so light the grid carries is not counted twice there.
+Only what the camera sees emits (a hidden face's contact light is missing) and nothing
+between i and j shadows (within a cell the cosines cut what is behind either surface). A
+window of up to (2 TAP_RADIUS + 1)^2 taps on a circle, the stride growing with rho in pixels,
+bounds the cost; a tap stands for stride^2 pixels, its patch stride times the pixel's.
 """
 
 from __future__ import annotations
@@ -26,10 +31,12 @@ import numpy as np
 
 from ..kernels import contact as _compiled
 from ..runtime import jit
+from ..scene.lights import polygon_irradiance
 from .raster import to_eye
 
 REACH_CELLS = 1.0  # the grid resolves light from about one cell out (docs/algorithm.md)
 TAP_RADIUS = 5  # taps per side: a disk of 2 T + 1 taps across, 80 taps with the centre out
+NEAR = 4.0  # patch half-diagonals within which the exact form factor replaces the disk's
 GRAZING = 1e-3  # |cos| floor of a pixel's area at grazing view (the disk form factor caps it)
 
 
@@ -55,24 +62,55 @@ def footprints(view: np.ndarray, projection: np.ndarray, width: int, height: int
     return cross * cos_axis / cos_surface, np.sqrt(cross * cos_axis)
 
 
+def patch_edges(view: np.ndarray, projection: np.ndarray, width: int, height: int,
+                positions: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """(M, 2, 3) half-edges of each pixel's footprint on its surface's plane: half a pixel
+    across the view ray at the point's depth, along the camera's x and y, slid along the ray
+    onto the plane through ``positions`` with ``normals`` (the derivative of the ray-plane
+    intersection); 0 where the ray runs within GRAZING of the plane (the gather then takes the
+    disk form factor)."""
+    view = np.asarray(view, np.float64)
+    proj = np.asarray(projection, np.float64)
+    p = np.asarray(positions, np.float64)
+    n = np.asarray(normals, np.float64)
+    half = (1.0 / (width * proj[0, 0]), 1.0 / (height * proj[1, 1]))  # NDC 1 / pixels
+    if abs(float(proj[3, 3])) > 0.5:  # orthographic: parallel rays, a fixed footprint
+        ray = np.broadcast_to(-view[2, :3], p.shape)
+        depth = np.ones(len(p))
+    else:
+        ray = p - np.linalg.inv(view)[:3, 3]
+        depth = -(p @ view[2, :3] + view[2, 3])
+    along = (n * ray).sum(-1)
+    ok = np.abs(along) > GRAZING * np.linalg.norm(ray, axis=-1)
+    along = np.where(ok, along, 1.0)
+    out = np.zeros((len(p), 2, 3))
+    for k in range(2):
+        e = (depth * half[k])[:, None] * view[k, :3]
+        out[:, k] = e - ((n * e).sum(-1) / along)[:, None] * ray
+    out[~ok] = 0.0
+    return out
+
+
 def gather(positions: np.ndarray, normals: np.ndarray, covered: np.ndarray,
            radiosity: np.ndarray, area: np.ndarray, size: np.ndarray, reach: np.ndarray,
-           region: np.ndarray) -> np.ndarray:
+           region: np.ndarray, edges: np.ndarray) -> np.ndarray:
     """Contact irradiance (H, W, 3) W/m^2 at every covered pixel from the covered pixels within
     its ``reach`` (module docstring). Images (H, W, ...): world positions and normals (3),
     ``covered`` bool, ``radiosity`` B (3) W/m^2, pixel ``area`` m^2 and ``size`` m
     (footprints), ``reach`` rho m (0: none), ``region`` int (pixels in different ones, on
-    different sides of a clip area, do not light each other)."""
+    different sides of a clip area, do not light each other), ``edges`` (2, 3) the footprint's
+    half-edges (patch_edges; 0: the disk form factor)."""
     h, w = covered.shape
     out = np.zeros((h, w, 3), np.float64)
     if not covered.any():
         return out
     if jit.enabled():
         return _compiled.gather(positions, normals, covered, radiosity, area, size, reach,
-                                region, TAP_RADIUS)
+                                region, edges, TAP_RADIUS, NEAR)
     pos = np.asarray(positions, np.float64)
     nrm = np.asarray(normals, np.float64)
-    flux = np.asarray(radiosity, np.float64) * np.asarray(area, np.float64)[..., None]
+    edges = np.asarray(edges, np.float64)
+    radiosity = np.asarray(radiosity, np.float64)
     rho = np.where(covered, np.asarray(reach, np.float64), 0.0)
     px = np.divide(rho, size, out=np.zeros((h, w)), where=size > 0)
     stride = np.maximum(1, np.ceil(px / TAP_RADIUS)).astype(np.int64)
@@ -94,9 +132,19 @@ def gather(positions: np.ndarray, normals: np.ndarray, covered: np.ndarray,
             r2 = np.where(ok, r2, 1.0)
             ci = (nrm * v).sum(-1)
             cj = -(nrm[y, x] * v).sum(-1)
-            ok &= (ci > 0) & (cj > 0)
+            ok &= cj > 0  # i in front of the patch
             a = (stride * stride) * area[y, x]
-            k = ci * cj / r2 * np.maximum(0.0, 1.0 / (np.pi * r2 + a) - inv_far)
-            k = np.where(ok, k * (stride * stride), 0.0)
-            out += flux[y, x] * k[..., None]
+            cc = np.maximum(ci, 0.0) * cj / r2
+            f = cc * a / (np.pi * r2 + a)  # the disk form factor
+            du, dv = stride[..., None] * edges[y, x, 0], stride[..., None] * edges[y, x, 1]
+            width = np.linalg.norm(du, axis=-1) + np.linalg.norm(dv, axis=-1)
+            exact = ok & (width > 0) & (width <= rho) & (r2 < (NEAR * width) ** 2)
+            ok &= exact | (ci > 0)  # the disk's centre above i's plane
+            if exact.any():  # the footprint's exact form factor, clipped to i's hemisphere
+                c = pos[y, x][exact]
+                du, dv = du[exact], dv[exact]
+                poly = np.stack([c - du - dv, c + du - dv, c + du + dv, c - du + dv], axis=1)
+                f[exact] = polygon_irradiance(poly, pos[exact], nrm[exact]) / np.pi
+            k = np.where(ok, np.maximum(0.0, f - cc * a * inv_far), 0.0)
+            out += radiosity[y, x] * k[..., None]
     return out

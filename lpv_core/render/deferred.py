@@ -233,8 +233,10 @@ def _contact(scene: Scene, lpv: LPVResult, projection, mask, pos, nrm, refl, e_g
         if clips:
             region = np.unique(np.array(clips).T, axis=0, return_inverse=True)[1].ravel()
         area_px, size_px = contact.footprints(scene.camera.view, projection, w, h, pos, nrm)
+        edges = contact.patch_edges(scene.camera.view, projection, w, h, pos, nrm)
         e = contact.gather(image(pos, (3,)), image(nrm, (3,)), mask, image(flux, (3,)),
-                           image(area_px), image(size_px), image(reach), image(region))
+                           image(area_px), image(size_px), image(reach), image(region),
+                           image(edges, (2, 3)))
     return e[mask]
 
 
