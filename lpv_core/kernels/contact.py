@@ -10,9 +10,8 @@ from .direct import _polygon
 
 
 def gather(positions, normals, covered, radiosity, area, size, reach, region, edges,
-           taps: int, near: float) -> np.ndarray:
-    """render.contact.gather by ``_gather_kernel``, ``taps`` its TAP_RADIUS, ``near`` its
-    NEAR."""
+           taps: int) -> np.ndarray:
+    """render.contact.gather by ``_gather_kernel``, ``taps`` its TAP_RADIUS."""
     h, w = covered.shape
     out = np.zeros((h, w, 3), np.float64)
     args = (np.ascontiguousarray(positions, np.float64), np.ascontiguousarray(normals, np.float64),
@@ -20,15 +19,14 @@ def gather(positions, normals, covered, radiosity, area, size, reach, region, ed
             np.ascontiguousarray(radiosity, np.float64), np.ascontiguousarray(area, np.float64),
             np.ascontiguousarray(size, np.float64), np.ascontiguousarray(reach, np.float64),
             np.ascontiguousarray(region, np.int64), np.ascontiguousarray(edges, np.float64))
-    pool.in_parts(lambda sl: _gather_kernel(*args, int(taps), float(near), out, sl.start,
-                                                  sl.stop), h,
+    pool.in_parts(lambda sl: _gather_kernel(*args, int(taps), out, sl.start, sl.stop), h,
                   smallest=16)
     return out
 
 
 @jit.kernel
-def _gather_kernel(pos, nrm, covered, radiosity, area, size, reach, region, edges, t, near,
-                   out, y0, y1):  # pragma: no cover - compiled
+def _gather_kernel(pos, nrm, covered, radiosity, area, size, reach, region, edges, t, out,
+                   y0, y1):  # pragma: no cover - compiled
     """gather's taps for rows y0..y1-1: the same window, stride, tests, form factors and sum
     in tap order."""
     h, w = covered.shape
@@ -65,12 +63,10 @@ def _gather_kernel(pos, nrm, covered, radiosity, area, size, reach, region, edge
                     a = (st * st) * area[yy, xx]
                     cc = max(ci, 0.0) * cj / r2
                     f = cc * a / (np.pi * r2 + a)  # the disk form factor
-                    lu = lv = 0.0
+                    span = 0.0  # 0: no footprint (patch_edges)
                     for k in range(3):
-                        lu += (st * edges[yy, xx, 0, k]) ** 2
-                        lv += (st * edges[yy, xx, 1, k]) ** 2
-                    width = np.sqrt(lu) + np.sqrt(lv)
-                    if width > 0.0 and width <= rho and r2 < (near * width) ** 2:
+                        span += abs(edges[yy, xx, 0, k]) + abs(edges[yy, xx, 1, k])
+                    if span > 0.0:
                         for k in range(3):
                             c = pos[yy, xx, k]
                             du, dv = st * edges[yy, xx, 0, k], st * edges[yy, xx, 1, k]

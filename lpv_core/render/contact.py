@@ -36,7 +36,7 @@ from .raster import to_eye
 
 REACH_CELLS = 1.0  # the grid resolves light from about one cell out (docs/algorithm.md)
 TAP_RADIUS = 5  # taps per side: a disk of 2 T + 1 taps across, 80 taps with the centre out
-NEAR = 4.0  # patch half-diagonals within which the exact form factor replaces the disk's
+FACE_TOLERANCE = 1e-4  # cells: a receiver this near a cascade's face counts as inside it
 GRAZING = 1e-3  # |cos| floor of a pixel's area at grazing view (the disk form factor caps it)
 
 
@@ -106,7 +106,7 @@ def gather(positions: np.ndarray, normals: np.ndarray, covered: np.ndarray,
         return out
     if jit.enabled():
         return _compiled.gather(positions, normals, covered, radiosity, area, size, reach,
-                                region, edges, TAP_RADIUS, NEAR)
+                                region, edges, TAP_RADIUS)
     pos = np.asarray(positions, np.float64)
     nrm = np.asarray(normals, np.float64)
     edges = np.asarray(edges, np.float64)
@@ -136,13 +136,12 @@ def gather(positions: np.ndarray, normals: np.ndarray, covered: np.ndarray,
             a = (stride * stride) * area[y, x]
             cc = np.maximum(ci, 0.0) * cj / r2
             f = cc * a / (np.pi * r2 + a)  # the disk form factor
-            du, dv = stride[..., None] * edges[y, x, 0], stride[..., None] * edges[y, x, 1]
-            width = np.linalg.norm(du, axis=-1) + np.linalg.norm(dv, axis=-1)
-            exact = ok & (width > 0) & (width <= rho) & (r2 < (NEAR * width) ** 2)
+            exact = ok & (np.abs(edges[y, x]).sum((-2, -1)) > 0)  # a footprint (patch_edges)
             ok &= exact | (ci > 0)  # the disk's centre above i's plane
             if exact.any():  # the footprint's exact form factor, clipped to i's hemisphere
                 c = pos[y, x][exact]
-                du, dv = du[exact], dv[exact]
+                s = stride[exact][:, None]
+                du, dv = s * edges[y, x, 0][exact], s * edges[y, x, 1][exact]
                 poly = np.stack([c - du - dv, c + du - dv, c + du + dv, c - du + dv], axis=1)
                 f[exact] = polygon_irradiance(poly, pos[exact], nrm[exact]) / np.pi
             k = np.where(ok, np.maximum(0.0, f - cc * a * inv_far), 0.0)

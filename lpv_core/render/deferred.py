@@ -225,9 +225,14 @@ def _contact(scene: Scene, lpv: LPVResult, projection, mask, pos, nrm, refl, e_g
     with Timer(stats, "contact"):
         chain = [g for g, _, _ in lpv.fine] + [lpv.grid]  # finest first
         cells = np.array([g.cell_size for g in chain])
-        reach = contact.REACH_CELLS * cells[cascades.assign(chain, pos, margin_cells=0.0)]
+        # a surface on a cascade's face (a wall the box was fitted to) is inside it, whatever
+        # float rounding says (FACE_TOLERANCE cells): its reach must not depend on where the
+        # scene sits
+        tol = contact.FACE_TOLERANCE
+        reach = contact.REACH_CELLS * cells[cascades.assign(chain, pos, margin_cells=-tol)]
         lo, hi = lpv.grid.bounds()
-        reach[~np.all((pos >= lo) & (pos <= hi), axis=1)] = 0.0  # outside the LPV: none
+        pad = tol * lpv.grid.cell_size
+        reach[~np.all((pos >= lo - pad) & (pos <= hi + pad), axis=1)] = 0.0  # outside: none
         clips = [areas.inside(a, pos) for a in scene.areas or () if a.type == "CLIP"]
         region = np.zeros(pos.shape[0], np.int64)  # one id per set of clip areas holding it
         if clips:
