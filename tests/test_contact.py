@@ -307,3 +307,26 @@ def test_a_pixels_footprint_edges_span_the_step_to_its_neighbours_on_the_same_fa
         assert err.max() < 5e-3, err.max()
         checked += same.sum()
     assert checked > 0.8 * 2 * mask.sum()
+
+
+@pytest.mark.parametrize("ortho", [False, True])
+def test_a_tilted_planes_footprint_is_the_pixel_stretched_by_its_tilt(ortho):
+    """Hand-derived footprints: a camera at 2 m looking down -z at the origin, 100 x 50
+    pixels over a 1 x 0.5 m view there (perspective: fov such that it is, at that depth;
+    orthographic: the same box), a plane through the origin tilted by 60 deg about y (normal
+    (sin 60, 0, cos 60)): along y a half pixel is 5 mm as seen; along x the footprint is that
+    / cos 60 = 10 mm, and it runs down the slope (dz/dx = -tan 60). At a grazing 89.99 deg tilt
+    there is none."""
+    from lpv_core.scene import orthographic_matrix
+
+    view = look_at_matrix(np.array([0.0, 0.0, 2.0]), np.zeros(3), up=(0.0, 1.0, 0.0))
+    proj = (orthographic_matrix(0.5, 0.25, 0.1, 10.0) if ortho else
+            perspective_matrix(2 * np.arctan(0.25 / 2.0), 2.0, 0.1, 10.0))
+    t = np.radians(60.0)
+    n = np.array([[np.sin(t), 0.0, np.cos(t)]])
+    edges = contact.patch_edges(view, proj, 100, 50, np.zeros((1, 3)), n)[0]
+    # 10 mm along the slope: 5 mm across the view, 5 tan 60 mm down
+    np.testing.assert_allclose(edges[0], [0.005, 0.0, -0.005 * np.tan(t)], atol=1e-12)
+    np.testing.assert_allclose(edges[1], [0.0, 0.005, 0.0], atol=1e-12)
+    edge_on = np.array([[np.sin(np.radians(89.99)), 0.0, np.cos(np.radians(89.99))]])
+    assert not contact.patch_edges(view, proj, 100, 50, np.zeros((1, 3)), edge_on).any()
