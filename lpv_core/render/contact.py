@@ -15,9 +15,9 @@ F_ij the patch's exact form factor: the pixel's footprint on its surface's plane
 parallelogram, patch_edges) by Lambert's contour integral clipped to the receiver's
 hemisphere (scene.lights.polygon_irradiance / pi), so that the steep near field at a face's
 foot, where the receiver lies almost in the emitter's plane, is integrated over the patch
-instead of sampled at its centre. A patch wider than the reach (a pixel seen at grazing view)
-takes the disk form factor cos_i cos_j A / (pi r^2 + A) (Bunnell, GPU Gems 2 ch. 14), finite
-where two surfaces meet. The subtracted term is the share the grid resolves, the patch as if
+instead of sampled at its centre. A pixel seen edge-on has no footprint and takes the disk
+form factor cos_i cos_j A / (pi r^2 + A) (Bunnell, GPU Gems 2 ch. 14), finite where two
+surfaces meet. The subtracted term is the share the grid resolves, the patch as if
 at rho: the sum is 0 from rho out, so light the grid carries is not counted twice there.
 Only what the camera sees emits (a hidden face's contact light is missing) and nothing
 between i and j shadows (within a cell the cosines cut what is behind either surface). A
@@ -37,7 +37,8 @@ from .raster import to_eye
 REACH_CELLS = 1.0  # the grid resolves light from about one cell out (docs/algorithm.md)
 TAP_RADIUS = 5  # taps per side: a disk of 2 T + 1 taps across, 80 taps with the centre out
 FACE_TOLERANCE = 1e-4  # cells: a receiver this near a cascade's face counts as inside it
-GRAZING = 1e-3  # |cos| floor of a pixel's area at grazing view (the disk form factor caps it)
+GRAZING = 1e-3  # |cos| of the view ray to a surface under which a pixel's area is floored
+# (the disk form factor caps it) and it has no footprint (patch_edges)
 
 
 def footprints(view: np.ndarray, projection: np.ndarray, width: int, height: int,

@@ -296,9 +296,10 @@ def _edge_term(a: np.ndarray, b: np.ndarray, n: np.ndarray) -> np.ndarray:
 def polygon_irradiance(verts: np.ndarray, positions: np.ndarray,
                        normals: np.ndarray) -> np.ndarray:
     """Irradiance (M,) at receivers (unit normals) from a convex polygon (V, 3) of unit
-    radiance (or one polygon per receiver, (M, V, 3)), by Lambert's contour integral E = 1/2 |sum gamma_i n . u_i| [Lambert 1760;
-    Arvo 1995], with the polygon clipped to each receiver's upper hemisphere (the part below
-    the tangent plane sends nothing; the clip adds the edge along the horizon)."""
+    radiance (or one polygon per receiver, (M, V, 3)), by Lambert's contour integral
+    E = 1/2 |sum gamma_i n . u_i| [Lambert 1760; Arvo 1995], with the polygon clipped to each
+    receiver's upper hemisphere (the part below the tangent plane sends nothing; the clip adds
+    the edge along the horizon)."""
     p = np.asarray(positions, np.float64)
     n = np.asarray(normals, np.float64)
     v = np.asarray(verts, np.float64)
