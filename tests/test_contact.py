@@ -96,7 +96,8 @@ def _facing(height, half, centre_z=None, reach=0.5):
 @pytest.mark.parametrize("compiled", [False, True])
 def test_a_patch_gives_its_footprints_exact_form_factor_less_the_grids_share(compiled):
     """A square of side 2a centred c above a receiver and parallel to it: four times the
-    catalogued corner form factor (Howell C-11), F = (2 / pi) (X / sqrt(1 + X^2))
+    catalogued form factor of a parallel rectangle with the receiver's normal through its
+    corner (Howell's catalogue), for an a x a square F = (1 / pi) (X / sqrt(1 + X^2))
     atan(X / sqrt(1 + X^2)), X = a / c, less the grid's share A / (pi rho^2)."""
     c, a, rho = 0.1, 0.05, 0.5
     x = a / c

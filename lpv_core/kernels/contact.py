@@ -68,10 +68,10 @@ def _gather_kernel(pos, nrm, covered, radiosity, area, size, reach, region, edge
                         span += abs(edges[yy, xx, 0, k]) + abs(edges[yy, xx, 1, k])
                     if span > 0.0:
                         for k in range(3):
-                            c = pos[yy, xx, k]
+                            q = pos[yy, xx, k]  # the patch's centre
                             du, dv = st * edges[yy, xx, 0, k], st * edges[yy, xx, 1, k]
-                            poly[0, k], poly[1, k] = c - du - dv, c + du - dv
-                            poly[2, k], poly[3, k] = c + du + dv, c - du + dv
+                            poly[0, k], poly[1, k] = q - du - dv, q + du - dv
+                            poly[2, k], poly[3, k] = q + du + dv, q - du + dv
                         f = _polygon(poly, pos[y, x, 0], pos[y, x, 1], pos[y, x, 2],
                                      nrm[y, x, 0], nrm[y, x, 1], nrm[y, x, 2]) / np.pi
                     elif ci <= 0.0:
