@@ -188,11 +188,13 @@ def _weighted_quantile(x: np.ndarray, w: np.ndarray, q: float) -> float:
 def place(lo, hi, resolution: int, count: int, camera=None, focus=None) -> list[Grid]:
     """Cascade grids, finest first; the last one is fitted to the scene bounds [lo, hi].
 
-    ``focus`` (N, 3): surface points the camera sees (a small G-buffer). A finer cascade is
-    then centred on the median of those within its own width of the eye, i.e. on what it can
-    resolve on screen, rather than on a point in front of the eye, which for a camera high
-    above a city holds only air (measured: the finest cascade missed the ground entirely).
-    Without focus points near enough, the KD10 rule: PUSH of the width along the view."""
+    ``focus`` (N, 3): surface points the camera sees (a small G-buffer, one per pixel). A
+    finer cascade is then centred on the median of those its parent holds: the middle of
+    what the screen shows that it can hold (it is clamped inside its parent), not a point in
+    front of the eye, which for a camera high above a city holds only air, nor the near
+    ground, which for a camera looking at a group of objects beyond its width left them in
+    coarser cells (docs/decisions.md). Without focus points in the parent, the KD10 rule:
+    PUSH of the width along the view."""
     outer = fit_grid(lo, hi, resolution)
     chain = [outer]
     if count <= 1 or camera is None:
@@ -206,9 +208,10 @@ def place(lo, hi, resolution: int, count: int, camera=None, focus=None) -> list[
         side = cell * resolution
         centre = eye + forward * (PUSH * side)
         if focus is not None and len(focus):
-            near = focus[np.linalg.norm(focus - eye, axis=1) <= side]
-            if len(near):
-                centre = np.median(near, axis=0)
+            box_lo, box_hi = parent.bounds()
+            held = focus[np.all((focus >= box_lo) & (focus <= box_hi), axis=1)]
+            if len(held):
+                centre = np.median(held, axis=0)
         origin = centre - 0.5 * side
         # on its parent's cells, so each of those lies wholly inside it or outside (whole)
         origin = anchor + np.round((origin - anchor) / parent.cell_size) * parent.cell_size

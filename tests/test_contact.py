@@ -24,8 +24,10 @@ from lpv_core.scene import (
     World,
     look_at_matrix,
     make_scene,
+    orthographic_matrix,
     perspective_matrix,
 )
+from lpv_core.scene.lights import polygon_irradiance
 from tools.core_scenes import box_triangles, light_matrix, quad
 
 ELEVATION = np.radians(35.0)
@@ -331,3 +333,107 @@ def test_a_tilted_planes_footprint_is_the_pixel_stretched_by_its_tilt(ortho):
     np.testing.assert_allclose(edges[1], [0.0, 0.005, 0.0], atol=1e-12)
     edge_on = np.array([[np.sin(np.radians(89.99)), 0.0, np.cos(np.radians(89.99))]])
     assert not contact.patch_edges(view, proj, 100, 50, np.zeros((1, 3)), edge_on).any()
+
+
+def _parapet(contact_light: bool = True, **settings):
+    """A sunlit 4 x 0.3 x 2 m wall on a 16 m ground (the sun 35 deg up, lighting its -y face)
+    seen straight down by an orthographic camera, which sees none of its faces; (the ground
+    pixels in front of the lit face, their rendered indirect irradiance, their distance to
+    the face, the finest cell, their exact single bounce from the face: B x its contour form
+    factor)."""
+    ground = quad([-8, -8, 0], [8, -8, 0], [8, 8, 0], [-8, 8, 0])
+    wall = box_triangles(np.array([-2.0, -0.15, 0.0]), np.array([2.0, 0.15, 2.0]))
+    sun = Light("Sun", "SUN", light_matrix((0, -6, 6), (0, np.cos(ELEVATION),
+                                                          -np.sin(ELEVATION))), power=SUN)
+    cam = Camera(look_at_matrix([0.0, -1.0, 10.0], [0.0, -1.0, 0.0], (0.0, 1.0, 0.0)),
+                 orthographic_matrix(1.0, 1.0, 0.1, 50.0), (64, 64))
+    grey = Material("ground", albedo=np.full(3, 0.5, np.float32))
+    scene = make_scene(np.concatenate([ground, wall]),
+                       material_index=[0] * len(ground) + [1] * len(wall),
+                       materials=[grey, Material("wall")], lights=[sun], camera=cam,
+                       settings=GISettings(grid_resolution=16, antialias=1,
+                                           contact_light=contact_light, **settings))
+    eng = engine.Engine()
+    lpv = eng.update(scene)
+    passes = deferred.render(eng, scene, lpv)
+    mask, pos, nrm, *_ = eng.raster.gbuffer(cam.view, cam.projection, 64, 64, 1.0)
+    e = passes["Diffuse Indirect"][..., 0][mask] * np.pi
+    g = (nrm[:, 2] > 0.99) & (np.abs(pos[:, 2]) < 1e-4) & (pos[:, 1] < -0.15)
+    g &= np.abs(pos[:, 0]) < 1.0
+    assert not ((np.abs(nrm[:, 2]) < 0.5) & mask[mask]).any()  # no face is seen
+    face = np.array([[-2, -0.15, 0], [2, -0.15, 0], [2, -0.15, 2], [-2, -0.15, 2.0]])
+    exact = (ALBEDO * SUN * np.cos(ELEVATION)) * polygon_irradiance(
+        np.broadcast_to(face, (int(g.sum()), 4, 3)), pos[g], nrm[g]) / np.pi
+    cell = lpv.fine[0][0].cell_size if lpv.fine else lpv.grid.cell_size
+    return e[g], -0.15 - pos[g, 1], cell, exact
+
+
+def test_a_sunlit_face_the_camera_cannot_see_lights_the_ground_at_its_foot():
+    """The sun's first bounce is gathered in the sun's view, which sees the face the camera
+    does not: the ground within half a cell of it reads 1.00 of the face's exact bounce
+    (0.53 with the grid alone, as a gather of the camera's pixels read, which hold no face);
+    from a cell out the grid's light alone is left (0.82 at 1-2 cells, both ways)."""
+    e, dist, cell, exact = _parapet()
+    e0, *_ = _parapet(contact_light=False)
+    near = dist < 0.5 * cell
+    assert near.sum() > 100
+    assert 0.95 < e[near].mean() / exact[near].mean() < 1.05
+    assert e0[near].mean() / exact[near].mean() < 0.6
+    far = dist >= cell
+    np.testing.assert_allclose(e[far], e0[far], rtol=1e-9, atol=1e-12)
+
+
+def test_the_suns_view_lights_nothing_through_a_room_of_single_faces():
+    """A closed room of single faces under a sun, the camera inside: the sun's view sees the
+    roof's top and the walls' outsides, a float32 rounding from the ceiling and the inner
+    walls; no tap is FRONT_TOLERANCE of the reach in front of a receiver inside, so the
+    contact light adds nothing to the grid's light (none reaches inside)."""
+    room = box_triangles(np.array([-2.05, -1.95, 0.0]), np.array([1.93, 2.07, 2.7]), inward=True)
+    sun = Light("Sun", "SUN", light_matrix((0, -6, 6), (0.3, np.cos(ELEVATION),
+                                                          -np.sin(ELEVATION))), power=SUN)
+    cam = Camera(look_at_matrix([0.0, -1.8, 1.2], [0.0, 0.0, 1.5]),
+                 perspective_matrix(1.6, 1.0, 0.05, 50.0), (48, 48))
+    out = []
+    for on in (True, False):
+        scene = make_scene(room, materials=[Material("white")], lights=[sun], camera=cam,
+                           settings=GISettings(grid_resolution=16, antialias=1,
+                                               contact_light=on, cascades_auto=False,
+                                               cascades=1))
+        eng = engine.Engine()
+        passes = deferred.render(eng, scene, eng.update(scene))
+        assert (passes["Diffuse Color"][..., 0] > 0).all()  # the camera sees only the room
+        out.append(passes["Diffuse Indirect"])
+    np.testing.assert_array_equal(out[0], out[1])
+
+
+@pytest.mark.skipif(not jit.enabled(), reason="numba is not installed or LPV_JIT=0")
+def test_compiled_sun_view_gather_is_the_numpy_one():
+    """gather_at on a sun's view (contact.sun_source) of the parapet, receivers the ground
+    and the wall's lit face: compiled and numpy alike."""
+    from lpv_core.engine import light_weight
+    from lpv_core.scene import lights as lights_mod
+
+    ground = quad([-8, -8, 0], [8, -8, 0], [8, 8, 0], [-8, 8, 0])
+    wall = box_triangles(np.array([-2.0, -0.15, 0.0]), np.array([2.0, 0.15, 2.0]))
+    sun = Light("Sun", "SUN", light_matrix((0, -6, 6), (0, np.cos(ELEVATION),
+                                                          -np.sin(ELEVATION))), power=SUN)
+    scene = make_scene(np.concatenate([ground, wall]), materials=[Material("grey")],
+                       lights=[sun], camera=None)
+    eng = engine.Engine()
+    lo, hi = eng.upload(scene, engine.Stats())
+    view = lights_mod.light_views(sun, (lo, hi), (np.array([-3.0, -3, -1]), np.array([3.0, 3, 3])))[0]
+    size = contact.sun_view_size(view, 0.4)
+    source = contact.sun_source(eng.raster, sun, view, size, light_weight(sun)[:, 0])
+    rng = np.random.default_rng(5)
+    n = 400
+    pos = np.c_[rng.uniform(-2, 2, n), rng.uniform(-0.5, -0.16, n), np.zeros(n)]
+    nrm = np.tile([0.0, 0.0, 1.0], (n, 1))
+    pos[::2] = np.c_[rng.uniform(-2, 2, n // 2), np.full(n // 2, -0.15), rng.uniform(0, 2, n // 2)]
+    nrm[::2] = (0.0, -1.0, 0.0)
+    args = (pos, nrm, np.full(n, 0.4), np.full(n, 2.0 * view.half_extent / size),
+            np.zeros(n, np.int64), contact.view_texels(view, size, pos), source, False)
+    got = contact.gather_at(*args)
+    with jit.disabled():
+        want = contact.gather_at(*args)
+    assert (want[1::2, 0] > 0).mean() > 0.9  # the ground by the face is lit by it
+    np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-300)

@@ -127,6 +127,32 @@ def test_inner_cascades_in_empty_space_are_skipped():
     assert all(d.keep for d in planner.cascade_plan(chain, sc))
 
 
+def test_finer_cascades_hold_the_middle_of_what_the_screen_shows():
+    """A camera looking at a group of objects 45-50 m away over a near ground 5-15 m away,
+    the group 70 % of the seen points: each finer cascade is centred on the median of the
+    seen points its parent holds, so the finest (under 30 m wide) holds the whole group. Centred on
+    the points within its width of the eye (the near ground) it held none of it, and the
+    group was read from cells twice as large."""
+    rng = np.random.default_rng(3)
+    group = rng.uniform([25.0, -3.0, 0.0], [30.0, 3.0, 4.0], (700, 3))
+    near = np.c_[rng.uniform(-15.0, -5.0, 300), rng.uniform(-4.0, 4.0, 300), np.zeros(300)]
+    focus = np.concatenate([group, near])
+    camera = Camera.look_at((-20.0, 0.0, 5.0), (28.0, 0.0, 1.0))
+    chain = cascades.place(np.full(3, -50.0), np.full(3, 50.0), 16, 3, camera, focus)
+    assert chain[0].cell_size * 16 < 30.0  # narrower than the eye's distance to the group
+    for g in chain:
+        lo, hi = g.bounds()
+        assert np.all((group >= lo) & (group <= hi))
+    # the middle cascade's box holds the group and none of the near ground
+    lo, hi = chain[1].bounds()
+    assert not np.any(np.all((near >= lo) & (near <= hi), axis=1))
+    # no seen point in the parent: KD10's push along the view, as without focus points
+    assert ([g.origin for g in cascades.place(np.full(3, -50.0), np.full(3, 50.0), 16, 3,
+                                              camera, np.full((4, 3), 1e3))]
+            == [g.origin for g in cascades.place(np.full(3, -50.0), np.full(3, 50.0), 16, 3,
+                                                 camera)])
+
+
 def test_a_room_that_fits_in_the_finest_cascade_needs_one():
     room = demo.cornell_box("SPOT")
     lo, hi = room.bounds()

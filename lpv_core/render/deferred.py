@@ -16,6 +16,7 @@ import numpy as np
 
 from .. import areas, cascades, lookup, sky, sources
 from ..engine import Engine, LPVResult, Stats, Timer, light_weight
+from ..scene import lights as lights_mod
 from ..scene.model import Camera, Scene
 from . import contact, direct, raster
 
@@ -72,7 +73,8 @@ def render(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats | None = N
     if s == 1:
         return _render_samples(engine, scene, lpv, stats, scene.camera.projection)[0]
     grid = [((i + 0.5) / s, (j + 0.5) / s) for i in range(s) for j in range(s)]
-    total, hits = _sample_sums(engine, scene, lpv, stats, grid, 1.0 / s)
+    views: dict = {}  # the contact light's sun views: the same for every sample
+    total, hits = _sample_sums(engine, scene, lpv, stats, grid, 1.0 / s, views=views)
     count = np.full((h, w, 1), float(s * s))
     if s * s < SLIVER_GRID * SLIVER_GRID:
         slivers = (hits == 0) & _beside(hits > 0)
@@ -85,7 +87,8 @@ def render(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats | None = N
                 y0, y1, x0, x1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
                 part = dataclasses.replace(scene, camera=crop(scene.camera, x0, y0, x1, y1))
                 only = slivers[y0:y1, x0:x1]
-                more, found = _sample_sums(engine, part, lpv, Stats(), ring, 1.0 / n, only)
+                more, found = _sample_sums(engine, part, lpv, Stats(), ring, 1.0 / n, only,
+                                           views)
             # only where the border found a surface: elsewhere the s^2 samples' mean stands
             at = np.zeros_like(slivers)
             at[y0:y1, x0:x1][only] = found > 0
@@ -101,8 +104,8 @@ def render(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats | None = N
 
 
 def _sample_sums(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats,
-                 offsets: list, footprint: float, only: np.ndarray | None = None
-                 ) -> tuple[dict, np.ndarray]:
+                 offsets: list, footprint: float, only: np.ndarray | None = None,
+                 views: dict | None = None) -> tuple[dict, np.ndarray]:
     """(sums over the samples at ``offsets`` ((x, y) in the pixel, 0-1) of every pass, the
     light passes weighted by their sample's colour; how many samples hit a surface (H, W)),
     float64; with ``only`` (H, W) bool, of its pixels alone, (K, C) and (K,) in row-major
@@ -111,6 +114,7 @@ def _sample_sums(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats,
     # the samples take turns over sets of the World's directions (sky.render_directions):
     # their mean integrates the sky over more directions than one set's bands resolve
     sets = min(len(offsets), sky.RENDER_SETS)
+    views = {} if views is None else views  # the contact light's sun views, for every sample
     total: dict = {}
     hits = np.zeros((h, w) if only is None else int(only.sum()), np.int32)
     for k, (ox, oy) in enumerate(offsets):
@@ -123,7 +127,7 @@ def _sample_sums(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats,
         # not this render's decisions: only their times and drops are kept
         sub = stats if k == 0 else Stats()
         samples, seen = _render_samples(engine, scene, lpv, sub, proj, footprint,
-                                        (k % sets, sets), (k, len(offsets)), only)
+                                        (k % sets, sets), (k, len(offsets)), only, views)
         hits += seen if only is None else seen[only]
         if sub is not stats:
             for key, v in sub.ms.items():
@@ -177,10 +181,11 @@ def even_divide(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def _direct(engine: Engine, scene: Scene, bounds, pos, nrm, stats: Stats, sky_set,
-            held: dict | None = None):
+            held: dict | None = None, apart: frozenset = frozenset()):
     """Direct irradiance (M, 3) of every lamp, the World and the emitters at the receivers,
     or None when there is none; with ``held`` (LPVResult.per_light), (that, the same sum with
-    each source weighted as combine weighs its grids, 0 for one without grids, or None)."""
+    each source weighted as combine weighs its grids, 0 for one without grids and for the
+    lamps named in ``apart``, or None)."""
     e_dir = e_gi = None
     g = float(scene.settings.intensity)
     for light in scene.lights:
@@ -190,7 +195,7 @@ def _direct(engine: Engine, scene: Scene, bounds, pos, nrm, stats: Stats, sky_se
                                    stats)
         e = direct.irradiance(light, pos, nrm, shadow)
         e_dir = e if e_dir is None else e_dir + e  # the first light: no zeros added
-        if held is not None and held.get(light.name) is not None:
+        if held is not None and held.get(light.name) is not None and light.name not in apart:
             part = e * (light_weight(light)[:, 0] * g)
             e_gi = part if e_gi is None else e_gi + part
     weights = None if held is None else sources.gi_weights(scene, held)
@@ -205,16 +210,25 @@ def _direct(engine: Engine, scene: Scene, bounds, pos, nrm, stats: Stats, sky_se
     return e_dir if held is None else (e_dir, e_gi)
 
 
-def _contact(scene: Scene, lpv: LPVResult, projection, mask, pos, nrm, refl, e_gi,
-             stats: Stats):
+def _sun_views(scene: Scene, lpv: LPVResult) -> list:
+    """The suns whose first bounce the contact light gathers in their own view: those with
+    grids (LPVResult.per_light)."""
+    return [light for light in scene.lights if light.type == "SUN" and light.power > 0
+            and lpv.per_light.get(light.name) is not None]
+
+
+def _contact(engine: Engine, scene: Scene, lpv: LPVResult, bounds, projection, mask, pos,
+             nrm, refl, e_gi, stats: Stats, views: dict):
     """Contact irradiance (M, 3) at the covered pixels (render/contact.py), None when no
     pixel bounces light; each pixel's reach is REACH_CELLS cells of the finest cascade
-    holding it (0 outside the LPV)."""
-    if e_gi is None or refl is None:
-        return None
+    holding it (0 outside the LPV). ``e_gi``: the GI-weighted direct light the camera's
+    pixels bounce, the suns' (_sun_views) left out: their bounce is gathered in each sun's
+    view fitted to each cascade (every surface the sun lights, seen or not), ``views``
+    caching those views' sources over a render's samples."""
     h, w = mask.shape
-    flux = np.asarray(refl, np.float64) * e_gi
-    if not flux.any():
+    suns = _sun_views(scene, lpv) if refl is not None else []
+    flux = None if e_gi is None or refl is None else np.asarray(refl, np.float64) * e_gi
+    if (flux is None or not flux.any()) and not suns:
         return None
 
     def image(values, shape=()):
@@ -229,20 +243,57 @@ def _contact(scene: Scene, lpv: LPVResult, projection, mask, pos, nrm, refl, e_g
         # float rounding says (FACE_TOLERANCE cells): its reach must not depend on where the
         # scene sits
         tol = contact.FACE_TOLERANCE
-        reach = contact.REACH_CELLS * cells[cascades.assign(chain, pos, margin_cells=-tol)]
+        level = cascades.assign(chain, pos, margin_cells=-tol)
+        reach = contact.REACH_CELLS * cells[level]
         lo, hi = lpv.grid.bounds()
         pad = tol * lpv.grid.cell_size
         reach[~np.all((pos >= lo - pad) & (pos <= hi + pad), axis=1)] = 0.0  # outside: none
-        clips = [areas.inside(a, pos) for a in scene.areas or () if a.type == "CLIP"]
-        region = np.zeros(pos.shape[0], np.int64)  # one id per set of clip areas holding it
-        if clips:
-            region = np.unique(np.array(clips).T, axis=0, return_inverse=True)[1].ravel()
-        area_px, size_px = contact.footprints(scene.camera.view, projection, w, h, pos, nrm)
-        edges = contact.patch_edges(scene.camera.view, projection, w, h, pos, nrm)
-        e = contact.gather(image(pos, (3,)), image(nrm, (3,)), mask, image(flux, (3,)),
-                           image(area_px), image(size_px), image(reach), image(region),
-                           image(edges, (2, 3)))
-    return e[mask]
+        clip_areas = [a for a in scene.areas or () if a.type == "CLIP"]
+        region = _regions(clip_areas, pos)
+        e = np.zeros((len(pos), 3))
+        if flux is not None and flux.any():
+            area_px, size_px = contact.footprints(scene.camera.view, projection, w, h, pos, nrm)
+            edges = contact.patch_edges(scene.camera.view, projection, w, h, pos, nrm)
+            e = contact.gather(image(pos, (3,)), image(nrm, (3,)), mask, image(flux, (3,)),
+                               image(area_px), image(size_px), image(reach), image(region),
+                               image(edges, (2, 3)))[mask]
+        g = float(scene.settings.intensity)
+        for light in suns:
+            weight = light_weight(light)[:, 0] * g
+            for c, grid in enumerate(chain):
+                rows = np.flatnonzero((level == c) & (reach > 0))
+                if not rows.size:
+                    continue
+                key = (light.name, c)
+                if key not in views:
+                    # the cascade and a reach around it: its receivers' taps on every side
+                    c_lo, c_hi = grid.bounds()
+                    margin = contact.REACH_CELLS * grid.cell_size
+                    view = lights_mod.light_views(light, bounds,
+                                                  (c_lo - margin, c_hi + margin))[0]
+                    size = contact.sun_view_size(view, grid.cell_size)
+                    source = contact.sun_source(engine.raster, light, view, size, weight)
+                    views[key] = view, size, source
+                view, size, source = views[key]
+                at = region[rows]
+                if clip_areas:  # numbered over the receivers and the sun's texels together
+                    ids = _regions(clip_areas, np.concatenate(
+                        [pos[rows], source.position[source.covered]]))
+                    at, source.region[source.covered] = ids[:rows.size], ids[rows.size:]
+                texel = 2.0 * view.half_extent / size
+                e[rows] += contact.gather_at(
+                    pos[rows], nrm[rows], reach[rows], np.full(rows.size, texel), at,
+                    contact.view_texels(view, size, pos[rows]), source, False)
+    return e
+
+
+def _regions(clip_areas: list, points: np.ndarray) -> np.ndarray:
+    """Clip-region id (N,) int64 of ``points``: the same for points inside the same set of
+    clip areas (pixels in different ones do not light each other)."""
+    if not clip_areas:
+        return np.zeros(len(points), np.int64)
+    inside = np.array([areas.inside(a, points) for a in clip_areas]).T
+    return np.unique(inside, axis=0, return_inverse=True)[1].ravel().astype(np.int64)
 
 
 def _through(near, far, trans: np.ndarray, rows: np.ndarray):
@@ -260,14 +311,16 @@ def _render_samples(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats,
                     projection: np.ndarray, footprint: float = 1.0,
                     sky_set: tuple[int, int] = (0, 1),
                     seed: tuple[int, int] = (0, 1),
-                    only: np.ndarray | None = None) -> tuple[dict, np.ndarray]:
+                    only: np.ndarray | None = None,
+                    views: dict | None = None) -> tuple[dict, np.ndarray]:
     """(the passes, the pixels whose sample hit a surface (H, W) bool) of one sample per
     pixel through the camera ``projection`` (render's sub-pixel offsets move it); a textured
     albedo is integrated over each sample's cell, ``footprint`` pixels a side
     (Rasterizer.gbuffer); the World's direct light over its directions' set ``sky_set``
     (sources.maps); ``seed``: (sample, samples) of the hashed alpha (each sample keeps other
     fragments of a partly covered surface, their mean its coverage). ``only`` (H, W) bool:
-    light only these pixels' surfaces (the others as if they saw none)."""
+    light only these pixels' surfaces (the others as if they saw none). ``views``: the
+    contact light's sun views, kept over a render's samples (_contact)."""
     w, h = scene.camera.resolution
     color = np.zeros((h, w, 3), np.float32)
     diff_dir = np.zeros((h, w, 3), np.float32)
@@ -286,8 +339,9 @@ def _render_samples(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats,
         through = np.flatnonzero(trans > 0)
         with Timer(stats, "direct"):
             if near:
+                apart = frozenset(light.name for light in _sun_views(scene, lpv))
                 e_dir, e_gi = _direct(engine, scene, (lo, hi), pos, nrm, stats, sky_set,
-                                      lpv.per_light)
+                                      lpv.per_light, apart)
             else:
                 e_dir, e_gi = _direct(engine, scene, (lo, hi), pos, nrm, stats, sky_set), None
             if through.size:
@@ -333,8 +387,9 @@ def _render_samples(engine: Engine, scene: Scene, lpv: LPVResult, stats: Stats,
                         if e is not None:
                             far[take] += e
                 if near:
-                    e_near = _contact(scene, lpv, projection, mask, pos, nrm,
-                                      refl[0] if refl else None, e_gi, stats)
+                    e_near = _contact(engine, scene, lpv, (lo, hi), projection, mask, pos,
+                                      nrm, refl[0] if refl else None, e_gi, stats,
+                                      {} if views is None else views)
                     if e_near is not None:  # >= 0 as the lookup's (negative GI weights)
                         e_ind[recv] = np.maximum(e_ind[recv] + e_near[recv], 0.0)
                 if turned.size:
