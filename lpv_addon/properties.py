@@ -27,7 +27,7 @@ PRESETS = {
     "DRAFT": ("Draft", "16^3 grid, 128^2 light maps: the fastest, coarsest bounced light",
               PRESET_SETTINGS["DRAFT"]),
     "PREVIEW": ("Preview", ("The default, 32^3 grid and 256^2 light maps: indirect error 0.14 "
-                            "to 0.576 on the report's scenes"),
+                            "to 0.458 on the report's scenes"),
                 PRESET_SETTINGS["PREVIEW"]),
     "HIGH": ("High", ("48^3 grid, 512^2 light maps: finer bounced light in large open scenes, "
                        "slower than Preview"),
