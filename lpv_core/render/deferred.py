@@ -228,7 +228,8 @@ def _contact(engine: Engine, scene: Scene, lpv: LPVResult, bounds, projection, m
     h, w = mask.shape
     suns = _sun_views(scene, lpv) if refl is not None else []
     flux = None if e_gi is None or refl is None else np.asarray(refl, np.float64) * e_gi
-    if (flux is None or not flux.any()) and not suns:
+    bounces = flux is not None and bool(flux.any())  # the camera's pixels send light
+    if not bounces and not suns:
         return None
 
     def image(values, shape=()):
@@ -251,7 +252,7 @@ def _contact(engine: Engine, scene: Scene, lpv: LPVResult, bounds, projection, m
         clip_areas = [a for a in scene.areas or () if a.type == "CLIP"]
         region = _regions(clip_areas, pos)
         e = np.zeros((len(pos), 3))
-        if flux is not None and flux.any():
+        if bounces:
             area_px, size_px = contact.footprints(scene.camera.view, projection, w, h, pos, nrm)
             edges = contact.patch_edges(scene.camera.view, projection, w, h, pos, nrm)
             e = contact.gather(image(pos, (3,)), image(nrm, (3,)), mask, image(flux, (3,)),
